@@ -1,0 +1,39 @@
+# Everything a person runs. `make demo` and `make test` set up the virtual environment first.
+VENV ?= .venv
+PYTHON ?= python3
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed-stamp
+
+.PHONY: install demo test test-slow lint type bench clean
+
+$(STAMP): pyproject.toml constraints.txt
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -c constraints.txt -e ".[dev]"
+	touch $(STAMP)
+
+install: $(STAMP)
+
+# The main job: SERASAC against stock SAC on a small task, a table and a learning-curve plot
+demo: install
+	$(PY) -m sb3_sera compare
+
+# The test suite without the long learning checks (what CI runs)
+test: install
+	$(PY) -m pytest -m "not slow"
+
+test-slow: install
+	$(PY) -m pytest -m slow
+
+lint: install
+	$(PY) -m ruff check .
+	$(PY) -m ruff format --check .
+
+type: install
+	$(PY) -m mypy
+
+bench: install
+	$(PY) benchmarks/train_speed.py
+
+clean:
+	rm -rf $(VENV) logs build *.egg-info .pytest_cache .mypy_cache .ruff_cache

@@ -1,0 +1,79 @@
+"""
+Gradient steps per second of SERASAC against stock SB3 SAC, interleaved in one process.
+
+Both models are built with their defaults on the same task, their replay buffers filled with
+``--learning-starts`` random transitions, then timed in alternating blocks so that machine noise hits both alike:
+
+- ``train``: ``model.train(block, batch_size)`` only (the gradient step);
+- ``learn``: ``model.learn(block)``, environment steps and one gradient step per environment step (SB3 defaults).
+
+Each figure is the median over blocks, with the interquartile range; the ratio is SAC's median rate over
+SERASAC's (the wall-time cost of SERASAC per gradient step, in units of SAC's).
+
+    python benchmarks/train_speed.py --env HalfCheetah-v5 --blocks 15 --block-steps 100
+"""
+
+import argparse
+import time
+
+import numpy as np
+import torch as th
+from stable_baselines3 import SAC
+from stable_baselines3.common.base_class import BaseAlgorithm
+
+from sb3_sera import SERASAC
+
+
+def _build(name: str, env_id: str, seed: int, learning_starts: int, sera_kwargs: dict) -> BaseAlgorithm:
+    if name == "SAC":
+        model: BaseAlgorithm = SAC("MlpPolicy", env_id, seed=seed, learning_starts=learning_starts)
+    else:
+        model = SERASAC("MlpPolicy", env_id, seed=seed, learning_starts=learning_starts, **sera_kwargs)
+    # Fill the replay buffer with random transitions (no gradient step before learning_starts)
+    model.learn(learning_starts)
+    return model
+
+
+def _time_block(model: BaseAlgorithm, mode: str, block_steps: int, batch_size: int) -> float:
+    start = time.perf_counter()
+    if mode == "train":
+        model.train(gradient_steps=block_steps, batch_size=batch_size)  # type: ignore[attr-defined]
+    else:
+        model.learn(block_steps, reset_num_timesteps=False)
+    return block_steps / (time.perf_counter() - start)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--env", default="HalfCheetah-v5")
+    parser.add_argument("--blocks", type=int, default=15, help="timed blocks per algorithm and mode")
+    parser.add_argument("--block-steps", type=int, default=100, help="gradient steps per block")
+    parser.add_argument("--warmup-blocks", type=int, default=2, help="untimed blocks first")
+    parser.add_argument("--learning-starts", type=int, default=1000)
+    parser.add_argument("--batch-size", type=int, default=256)
+    parser.add_argument("--threads", type=int, default=th.get_num_threads(), help="torch threads (default: torch's)")
+    parser.add_argument("--modes", nargs="+", default=["train", "learn"], choices=["train", "learn"])
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+
+    th.set_num_threads(args.threads)
+    names = ["SAC", "SERASAC"]
+    models = {name: _build(name, args.env, args.seed, args.learning_starts, {}) for name in names}
+    print(f"{args.env}, batch {args.batch_size}, {args.threads} torch thread(s), torch {th.__version__}")
+    print(f"{'mode':<6} {'algorithm':<9} {'steps/s (median)':>17} {'IQR':>15}  ratio (SAC rate / rate)")
+    for mode in args.modes:
+        rates: dict[str, list[float]] = {name: [] for name in names}
+        for block in range(args.warmup_blocks + args.blocks):
+            for name in names if block % 2 == 0 else reversed(names):
+                rate = _time_block(models[name], mode, args.block_steps, args.batch_size)
+                if block >= args.warmup_blocks:
+                    rates[name].append(rate)
+        medians = {name: float(np.median(values)) for name, values in rates.items()}
+        for name in names:
+            low, high = np.percentile(rates[name], [25, 75])
+            ratio = medians["SAC"] / medians[name]
+            print(f"{mode:<6} {name:<9} {medians[name]:>17.1f} {f'{low:.1f}-{high:.1f}':>15}  {ratio:.2f}x")
+
+
+if __name__ == "__main__":
+    main()

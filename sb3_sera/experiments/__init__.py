@@ -1,0 +1,1 @@
+"""Experiment tooling: comparisons, command line."""

@@ -1,0 +1,53 @@
+"""The ``sb3-sera`` command line (also ``python -m sb3_sera``)."""
+
+import argparse
+from collections.abc import Sequence
+from pathlib import Path
+
+from sb3_sera.experiments import compare
+
+
+def _compare(args: argparse.Namespace) -> None:
+    results = compare.run_comparison(
+        algos=args.algos,
+        env_id=args.env,
+        seeds=args.seeds,
+        n_timesteps=args.n_timesteps,
+        out_dir=args.out,
+        eval_freq=args.eval_freq,
+        n_eval_episodes=args.eval_episodes,
+        n_jobs=args.n_jobs,
+    )
+    table = compare.summary_table(results)
+    out = Path(args.out)
+    plot = out / f"{args.env}_learning_curves.png"
+    compare.plot_learning_curves(results, plot)
+    (out / f"{args.env}_summary.md").write_text(f"{args.env}, {args.n_timesteps} steps, seeds {list(args.seeds)}\n\n{table}\n")
+    print(f"\n{args.env}, {args.n_timesteps} steps, seeds {list(args.seeds)}\n{table}")
+    print(f"\nLearning curves: {plot}\nRun folders: {out}/<algo>/{args.env}_<seed>/")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="sb3-sera", description="SERA for Stable-Baselines3")
+    commands = parser.add_subparsers(dest="command", required=True)
+    comp = commands.add_parser(
+        "compare",
+        help="train algorithms on one task for several seeds, print a table and plot learning curves",
+        description="Train algorithms on one task for several seeds, print a table and plot learning curves.",
+    )
+    comp.add_argument("--algos", nargs="+", default=list(compare.DEFAULT_ALGOS), help="algorithm names")
+    comp.add_argument("--env", default=compare.DEFAULT_ENV, help="Gymnasium id")
+    comp.add_argument("--seeds", nargs="+", type=int, default=list(compare.DEFAULT_SEEDS))
+    comp.add_argument("-n", "--n-timesteps", type=int, default=compare.DEFAULT_TIMESTEPS)
+    comp.add_argument("--eval-freq", type=int, default=1000, help="environment steps between evaluations")
+    comp.add_argument("--eval-episodes", type=int, default=5)
+    comp.add_argument("--n-jobs", type=int, default=None, help="runs at a time (default: one per core)")
+    comp.add_argument("--out", default="logs/compare", help="root of the run folders")
+    comp.set_defaults(func=_compare)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """Entry point of ``sb3-sera``."""
+    args = build_parser().parse_args(argv)
+    args.func(args)

@@ -1,0 +1,220 @@
+"""
+Train several algorithms on one task for several seeds, then tabulate and plot the results.
+
+Each run writes a folder in rl-zoo3's layout, ``<out>/<algo>/<env_id>_<seed>/``, holding the ``evaluations.npz``
+of SB3's ``EvalCallback``, the training ``monitor.csv``, the final model ``<env_id>.zip`` and ``result.json``
+(wall time and final evaluation). A run whose ``result.json`` exists is not run again, so an interrupted
+comparison resumes where it stopped.
+"""
+
+import json
+import math
+import os
+import time
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import asdict, dataclass, field
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch as th
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.callbacks import EvalCallback
+from stable_baselines3.common.env_util import make_vec_env
+from tqdm import tqdm
+
+from sb3_sera.sera import SERASAC
+
+#: Default quick comparison: a task that SAC solves in a few thousand steps.
+DEFAULT_ENV = "Pendulum-v1"
+DEFAULT_ALGOS = ("serasac", "sac")
+DEFAULT_SEEDS = (0, 1)
+DEFAULT_TIMESTEPS = 6_000
+#: Hyperparameters of the quick comparison: rl-zoo3's SAC entry for Pendulum-v1 (learning rate 1e-3),
+#: for every algorithm; SERASAC's critics use the same rate as their largest step size.
+DEFAULT_HYPERPARAMS: dict[str, dict[str, Any]] = {
+    "sac": {"learning_rate": 1e-3},
+    "serasac": {"learning_rate": 1e-3, "critic_lr_max": 1e-3},
+}
+
+
+def algorithm_classes() -> dict[str, type[BaseAlgorithm]]:
+    """rl-zoo3's algorithms by lower-case name, with this package's added."""
+    from rl_zoo3.utils import ALGOS
+
+    return {**ALGOS, "serasac": SERASAC}
+
+
+@dataclass
+class RunResult:
+    """What one training run measured."""
+
+    algo: str
+    env_id: str
+    seed: int
+    n_timesteps: int
+    wall_time_s: float
+    #: Mean return of the last evaluation
+    final_return: float
+    timesteps: list[int] = field(default_factory=list)
+    #: Mean evaluation return at each of ``timesteps``
+    returns: list[float] = field(default_factory=list)
+
+
+def run_dir(out_dir: str | Path, algo: str, env_id: str, seed: int) -> Path:
+    """The folder of one run, in rl-zoo3's layout."""
+    return Path(out_dir) / algo / f"{env_id}_{seed}"
+
+
+def train_one(
+    algo: str,
+    env_id: str,
+    seed: int,
+    n_timesteps: int,
+    out_dir: str,
+    hyperparams: dict[str, Any] | None = None,
+    eval_freq: int = 1000,
+    n_eval_episodes: int = 5,
+    threads: int = 1,
+) -> RunResult:
+    """
+    Train one algorithm on one seed and evaluate it every ``eval_freq`` steps; skip if already done.
+
+    :param algo: lower-case algorithm name (see :func:`algorithm_classes`)
+    :param env_id: Gymnasium id
+    :param seed: random seed
+    :param n_timesteps: training budget in environment steps
+    :param out_dir: root of the run folders
+    :param hyperparams: keyword arguments of the algorithm
+    :param eval_freq: environment steps between evaluations
+    :param n_eval_episodes: episodes per evaluation
+    :param threads: torch threads for this run (1 when several runs share the cores)
+    """
+    folder = run_dir(out_dir, algo, env_id, seed)
+    result_file = folder / "result.json"
+    if result_file.exists():
+        return RunResult(**json.loads(result_file.read_text()))
+    th.set_num_threads(threads)
+    folder.mkdir(parents=True, exist_ok=True)
+    env = make_vec_env(env_id, n_envs=1, seed=seed, monitor_dir=str(folder))
+    eval_env = make_vec_env(env_id, n_envs=1, seed=seed + 10_000)
+    model = algorithm_classes()[algo]("MlpPolicy", env, seed=seed, verbose=0, **(hyperparams or {}))
+    callback = EvalCallback(eval_env, eval_freq=eval_freq, n_eval_episodes=n_eval_episodes, log_path=str(folder), verbose=0)
+    start = time.perf_counter()
+    model.learn(n_timesteps, callback=callback)
+    wall_time = time.perf_counter() - start
+    model.save(folder / env_id)
+    evaluations = np.load(folder / "evaluations.npz")
+    returns = evaluations["results"].mean(axis=1)
+    result = RunResult(
+        algo=algo,
+        env_id=env_id,
+        seed=seed,
+        n_timesteps=n_timesteps,
+        wall_time_s=wall_time,
+        final_return=float(returns[-1]),
+        timesteps=[int(t) for t in evaluations["timesteps"]],
+        returns=[float(r) for r in returns],
+    )
+    # Written last: its presence marks the run as finished
+    result_file.write_text(json.dumps(asdict(result)))
+    env.close()
+    eval_env.close()
+    return result
+
+
+def run_comparison(
+    algos: Sequence[str] = DEFAULT_ALGOS,
+    env_id: str = DEFAULT_ENV,
+    seeds: Sequence[int] = DEFAULT_SEEDS,
+    n_timesteps: int = DEFAULT_TIMESTEPS,
+    out_dir: str = "logs/compare",
+    hyperparams: dict[str, dict[str, Any]] | None = None,
+    eval_freq: int = 1000,
+    n_eval_episodes: int = 5,
+    n_jobs: int | None = None,
+    progress_bar: bool = True,
+) -> list[RunResult]:
+    """
+    Train every algorithm on every seed, ``n_jobs`` runs at a time (default: one per core), one torch thread each.
+
+    :return: the results, ordered as ``algos`` x ``seeds``
+    """
+    known = algorithm_classes()
+    unknown = [algo for algo in algos if algo not in known]
+    if unknown:
+        raise ValueError(f"Unknown algorithm(s) {unknown}: expected names among {sorted(known)}")
+    if eval_freq > n_timesteps:
+        raise ValueError(f"eval_freq={eval_freq} exceeds n_timesteps={n_timesteps}: no evaluation would run")
+    params = DEFAULT_HYPERPARAMS if hyperparams is None else hyperparams
+    jobs = [(algo, seed) for algo in algos for seed in seeds]
+    n_jobs = min(n_jobs or os.cpu_count() or 1, len(jobs))
+    threads = 1 if n_jobs > 1 else th.get_num_threads()
+    results: dict[tuple[str, int], RunResult] = {}
+    with (
+        ProcessPoolExecutor(max_workers=n_jobs, mp_context=get_context("spawn")) as pool,
+        tqdm(total=len(jobs), desc=f"{env_id} runs", disable=not progress_bar) as bar,
+    ):
+        futures = {
+            pool.submit(
+                train_one,
+                algo,
+                env_id,
+                seed,
+                n_timesteps,
+                out_dir,
+                params.get(algo, {}),
+                eval_freq,
+                n_eval_episodes,
+                threads,
+            ): (algo, seed)
+            for algo, seed in jobs
+        }
+        for future in as_completed(futures):
+            results[futures[future]] = future.result()
+            bar.update()
+    return [results[job] for job in jobs]
+
+
+def summary_table(results: Sequence[RunResult]) -> str:
+    """A Markdown table: final evaluation return (mean +- std over seeds) and wall time per algorithm."""
+    lines = [
+        "| algorithm | seeds | final return (mean ± std) | wall time s (mean) | steps/s (mean) |",
+        "|---|---|---|---|---|",
+    ]
+    for algo in dict.fromkeys(result.algo for result in results):
+        runs = [result for result in results if result.algo == algo]
+        finals = np.array([run.final_return for run in runs])
+        walls = np.array([run.wall_time_s for run in runs])
+        speed = np.mean([run.n_timesteps / run.wall_time_s for run in runs])
+        lines.append(f"| {algo} | {len(runs)} | {finals.mean():.1f} ± {finals.std():.1f} | {walls.mean():.1f} | {speed:.1f} |")
+    return "\n".join(lines)
+
+
+def plot_learning_curves(results: Sequence[RunResult], path: str | Path) -> None:
+    """Mean evaluation return against timesteps per algorithm, with a 95% confidence band over seeds."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for algo in dict.fromkeys(result.algo for result in results):
+        runs = [result for result in results if result.algo == algo]
+        length = min(len(run.returns) for run in runs)
+        curves = np.array([run.returns[:length] for run in runs])
+        timesteps = np.array(runs[0].timesteps[:length])
+        mean = curves.mean(axis=0)
+        half_width = 1.96 * curves.std(axis=0, ddof=1) / math.sqrt(len(runs)) if len(runs) > 1 else 0 * mean
+        ax.plot(timesteps, mean, label=f"{algo} (n={len(runs)})")
+        ax.fill_between(timesteps, mean - half_width, mean + half_width, alpha=0.25)
+    ax.set_xlabel("environment steps")
+    ax.set_ylabel("evaluation return")
+    ax.set_title(results[0].env_id)
+    ax.legend()
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

@@ -1,0 +1,181 @@
+"""
+Ensemble aggregation rules of SERA (paper section 4.1, SPEC section 1, steps 2-4, 7 and 8).
+
+Every function here is a pure function of tensors of critic values with shape ``(batch_size, n_critics)``,
+so it can be unit-tested on hand-computed numbers and reused by the multi-agent algorithms.
+"""
+
+from typing import Literal, NamedTuple
+
+import torch as th
+
+TargetAggregation = Literal["sera", "mean", "median", "min"]
+ActorAggregation = Literal["median", "mean", "min"]
+TemperatureMode = Literal["absolute", "relative"]
+
+TARGET_AGGREGATIONS: tuple[str, ...] = ("sera", "mean", "median", "min")
+ACTOR_AGGREGATIONS: tuple[str, ...] = ("median", "mean", "min")
+TEMPERATURE_MODES: tuple[str, ...] = ("absolute", "relative")
+
+# Added to the mean deviation in "relative" temperature mode, so that an ensemble in full agreement
+# does not divide by zero.
+RELATIVE_TEMPERATURE_EPS = 1e-8
+
+
+class SERAAggregate(NamedTuple):
+    """Result of :func:`sera_aggregate`, all tensors detached from nothing (callers use ``no_grad``)."""
+
+    #: Aggregated value ``Q_SERA``, shape ``(batch_size,)``
+    value: th.Tensor
+    #: Median anchor ``Q_med``, shape ``(batch_size,)``
+    median: th.Tensor
+    #: Index ``m`` of the median critic, shape ``(batch_size,)``
+    median_index: th.Tensor
+    #: Reliability weights ``w``, shape ``(batch_size, n_critics)``; zero at the median index
+    #: (unless the median critic is included in the softmax), each row sums to one
+    weights: th.Tensor
+
+
+def median_anchor(q_values: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+    """
+    Median over critics and the index of the critic that holds it.
+
+    Uses ``torch.median`` semantics: for an even number of critics it is the lower of the two middle values,
+    so the anchor is always the value of one real critic.
+
+    :param q_values: critic values, shape ``(batch_size, n_critics)``
+    :return: the median values and their critic index, each of shape ``(batch_size,)``
+    """
+    result = th.median(q_values, dim=1)
+    return result.values, result.indices
+
+
+def sera_aggregate(
+    q_values: th.Tensor,
+    alpha: float = 0.5,
+    temperature: float = 1.0,
+    include_median: bool = False,
+    temperature_mode: TemperatureMode = "absolute",
+) -> SERAAggregate:
+    """
+    Median-anchored soft reliability aggregation (paper eq. 2-6).
+
+    ``d_i = |q_i - q_med|``, ``w = softmax_{i != m}(-d / tau)``,
+    ``Q_SERA = alpha * q_med + (1 - alpha) * sum_{i != m} w_i q_i``.
+
+    :param q_values: (target) critic values, shape ``(batch_size, n_critics)``, ``n_critics >= 2``
+    :param alpha: weight of the median anchor, in ``[0, 1]``
+    :param temperature: softmax temperature ``tau > 0``, in reward units when ``temperature_mode="absolute"``
+    :param include_median: the *SERA-Median* ablation: the median critic also enters the softmax
+        (with deviation zero) instead of being excluded
+    :param temperature_mode: ``"absolute"`` uses ``tau`` as is; ``"relative"`` multiplies it, per sample,
+        by the mean deviation of the non-median critics (plus ``1e-8``), which makes the weights
+        invariant to the scale of the values
+    :return: the aggregate, the median anchor, its index and the weights
+    """
+    q_med, median_index = median_anchor(q_values)
+    deviations = (q_values - q_med.unsqueeze(1)).abs()
+    is_median = th.zeros_like(q_values, dtype=th.bool).scatter_(1, median_index.unsqueeze(1), True)
+    tau: th.Tensor | float = temperature
+    if temperature_mode == "relative":
+        # The median critic has deviation zero, so the sum over all critics is the sum over the others
+        mean_deviation = deviations.sum(dim=1, keepdim=True) / (q_values.shape[1] - 1)
+        tau = temperature * (mean_deviation.detach() + RELATIVE_TEMPERATURE_EPS)
+    logits = -deviations / tau
+    if not include_median:
+        logits = logits.masked_fill(is_median, float("-inf"))
+    weights = th.softmax(logits, dim=1)
+    rest = (weights * q_values).sum(dim=1)
+    value = alpha * q_med + (1.0 - alpha) * rest
+    return SERAAggregate(value, q_med, median_index, weights)
+
+
+def aggregate_target(
+    q_values: th.Tensor,
+    mode: TargetAggregation = "sera",
+    alpha: float = 0.5,
+    temperature: float = 1.0,
+    include_median: bool = False,
+    temperature_mode: TemperatureMode = "absolute",
+) -> th.Tensor:
+    """
+    Reduce target critic values to one target value per sample.
+
+    :param q_values: target critic values, shape ``(batch_size, n_critics)``
+    :param mode: ``"sera"`` (:func:`sera_aggregate`), ``"mean"`` (the paper's *Ensemble Mean*),
+        ``"median"`` or ``"min"`` (clipped double Q over all critics)
+    :param alpha: see :func:`sera_aggregate` (``"sera"`` only)
+    :param temperature: see :func:`sera_aggregate` (``"sera"`` only)
+    :param include_median: see :func:`sera_aggregate` (``"sera"`` only)
+    :param temperature_mode: see :func:`sera_aggregate` (``"sera"`` only)
+    :return: the aggregated values, shape ``(batch_size,)``
+    """
+    if mode == "sera":
+        return sera_aggregate(q_values, alpha, temperature, include_median, temperature_mode).value
+    if mode == "mean":
+        return q_values.mean(dim=1)
+    if mode == "median":
+        return median_anchor(q_values)[0]
+    if mode == "min":
+        return q_values.min(dim=1).values
+    raise ValueError(f"Unknown target aggregation {mode!r}, expected one of {TARGET_AGGREGATIONS}")
+
+
+def aggregate_actor(q_values: th.Tensor, mode: ActorAggregation = "median") -> th.Tensor:
+    """
+    Reduce online critic values at the actor's actions to the value the actor maximizes.
+
+    :param q_values: online critic values, shape ``(batch_size, n_critics)``
+    :param mode: ``"median"`` (the paper's centralized value, Algorithm 2 line 24), ``"mean"`` or ``"min"``
+    :return: the aggregated values, shape ``(batch_size,)``, differentiable
+    """
+    if mode == "median":
+        return median_anchor(q_values)[0]
+    if mode == "mean":
+        return q_values.mean(dim=1)
+    if mode == "min":
+        return q_values.min(dim=1).values
+    raise ValueError(f"Unknown actor aggregation {mode!r}, expected one of {ACTOR_AGGREGATIONS}")
+
+
+def selected_critic(q_values: th.Tensor, mode: ActorAggregation) -> th.Tensor | None:
+    """
+    For the aggregations that pick one critic per sample, the index of that critic.
+
+    ``aggregate_actor(q, mode) == q.gather(1, index)`` for ``"median"`` and ``"min"``; ``"mean"`` picks none.
+
+    :param q_values: critic values, shape ``(batch_size, n_critics)``
+    :param mode: the actor aggregation
+    :return: the critic index per sample, shape ``(batch_size,)``, or ``None`` for ``"mean"``
+    """
+    if mode == "median":
+        return median_anchor(q_values)[1]
+    if mode == "min":
+        return q_values.argmin(dim=1)
+    return None
+
+
+def ensemble_disagreement(q_values: th.Tensor) -> th.Tensor:
+    """
+    Per-sample critic disagreement ``U = mean_i |Q_i - median_i Q_i|`` (paper appendix B, Algorithm 1).
+
+    :param q_values: critic values, shape ``(batch_size, n_critics)``
+    :return: the disagreement, shape ``(batch_size,)``
+    """
+    q_med = median_anchor(q_values)[0]
+    return (q_values - q_med.unsqueeze(1)).abs().mean(dim=1)
+
+
+def critic_correlation(q_values: th.Tensor) -> th.Tensor:
+    """
+    Mean off-diagonal Pearson correlation of the critics over the batch (paper appendix A.4).
+
+    A critic that is constant over the batch has no defined correlation; it counts as zero.
+
+    :param q_values: critic values, shape ``(batch_size, n_critics)``
+    :return: a scalar tensor in ``[-1, 1]``
+    """
+    n_critics = q_values.shape[1]
+    corr = th.nan_to_num(th.corrcoef(q_values.T), nan=0.0)
+    off_diagonal = corr.sum() - corr.diagonal().sum()
+    return off_diagonal / (n_critics * (n_critics - 1))

@@ -1,0 +1,298 @@
+"""Policies of SERASAC: SB3's squashed Gaussian actor and a heterogeneous ensemble of critics."""
+
+from typing import Any
+
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.policies import BaseModel
+from stable_baselines3.common.preprocessing import get_action_dim
+from stable_baselines3.common.torch_layers import (
+    BaseFeaturesExtractor,
+    CombinedExtractor,
+    FlattenExtractor,
+    NatureCNN,
+    create_mlp,
+    get_actor_critic_arch,
+)
+from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
+from stable_baselines3.sac.policies import SACPolicy
+from torch import nn
+
+#: Hidden layers of the paper's heterogeneous critics (Table 4); critic ``i`` uses ``CRITIC_ARCHS[i % 5]``.
+CRITIC_ARCHS: tuple[tuple[int, ...], ...] = (
+    (256, 256),
+    (128, 256, 128),
+    (256, 128),
+    (512, 256),
+    (128, 128, 128),
+)
+
+DEFAULT_N_CRITICS = 5
+
+
+def default_critic_archs(n_critics: int) -> list[list[int]]:
+    """The hidden layers of ``n_critics`` critics, cycling through the paper's Table 4."""
+    return [list(CRITIC_ARCHS[idx % len(CRITIC_ARCHS)]) for idx in range(n_critics)]
+
+
+def check_critic_archs(critic_archs: list[list[int]], n_critics: int) -> None:
+    """
+    Raise ``ValueError`` unless ``critic_archs`` gives one list of positive layer sizes per critic.
+
+    :param critic_archs: hidden layer sizes, one list per critic
+    :param n_critics: the number of critics
+    """
+    if n_critics < 2:
+        raise ValueError(f"n_critics={n_critics} is out of range: an ensemble needs n_critics >= 2")
+    if len(critic_archs) != n_critics:
+        raise ValueError(
+            f"critic_archs has {len(critic_archs)} entries but n_critics={n_critics}: give one list of hidden "
+            "layer sizes per critic, or leave critic_archs=None for the paper's Table 4 architectures"
+        )
+    for idx, arch in enumerate(critic_archs):
+        if not all(isinstance(size, int) and size > 0 for size in arch):
+            raise ValueError(f"critic_archs[{idx}]={arch!r} is invalid: hidden layer sizes must be positive integers")
+
+
+class EnsembleCritic(BaseModel):
+    """
+    ``n_critics`` Q-networks, each with its own hidden layers, reading the same features and action.
+
+    Drop-in for SB3's ``ContinuousCritic`` (same ``forward``/``q1_forward``, same ``qf{i}`` module names), with
+    :meth:`q_values` returning all values as one ``(batch_size, n_critics)`` tensor.
+
+    :param observation_space: Observation space
+    :param action_space: Action space
+    :param critic_archs: hidden layer sizes, one list per critic
+    :param features_extractor: Network to extract features
+    :param features_dim: Number of features
+    :param activation_fn: Activation function
+    :param normalize_images: Whether to normalize images or not, dividing by 255.0
+    :param share_features_extractor: Whether the features extractor is shared with the actor
+        (then it is only trained through the actor loss)
+    """
+
+    features_extractor: BaseFeaturesExtractor
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Box,
+        critic_archs: list[list[int]],
+        features_extractor: BaseFeaturesExtractor,
+        features_dim: int,
+        activation_fn: type[nn.Module] = nn.ReLU,
+        normalize_images: bool = True,
+        share_features_extractor: bool = True,
+    ):
+        super().__init__(
+            observation_space,
+            action_space,
+            features_extractor=features_extractor,
+            normalize_images=normalize_images,
+        )
+        action_dim = get_action_dim(self.action_space)
+        self.share_features_extractor = share_features_extractor
+        self.critic_archs = critic_archs
+        self.n_critics = len(critic_archs)
+        self.q_networks: list[nn.Module] = []
+        for idx, arch in enumerate(critic_archs):
+            q_net = nn.Sequential(*create_mlp(features_dim + action_dim, 1, arch, activation_fn))
+            self.add_module(f"qf{idx}", q_net)
+            self.q_networks.append(q_net)
+
+    def q_input(self, obs: PyTorchObs, actions: th.Tensor) -> th.Tensor:
+        """The critics' common input: features of ``obs`` concatenated with ``actions``."""
+        # The features extractor learns from the actor loss only when it is shared with the actor
+        with th.set_grad_enabled(not self.share_features_extractor):
+            features = self.extract_features(obs, self.features_extractor)
+        return th.cat([features, actions], dim=1)
+
+    def forward(self, obs: PyTorchObs, actions: th.Tensor) -> tuple[th.Tensor, ...]:
+        q_input = self.q_input(obs, actions)
+        return tuple(q_net(q_input) for q_net in self.q_networks)
+
+    def q_values(self, obs: PyTorchObs, actions: th.Tensor) -> th.Tensor:
+        """All critics' values, shape ``(batch_size, n_critics)``."""
+        return self.q_values_from_input(self.q_input(obs, actions))
+
+    def q_values_from_input(self, q_input: th.Tensor) -> th.Tensor:
+        """All critics' values from the input of :meth:`q_input`, shape ``(batch_size, n_critics)``."""
+        return th.cat([q_net(q_input) for q_net in self.q_networks], dim=1)
+
+    def selected_q_values(self, q_input: th.Tensor, critic_index: th.Tensor) -> th.Tensor:
+        """
+        The value of one critic per sample, ``Q_{index_j}(x_j)``, shape ``(batch_size, 1)``, differentiable.
+
+        Each critic runs only on the samples it was selected for, so the cost (and the backward pass) is about
+        that of a single critic on the whole batch instead of all of them.
+
+        :param q_input: critic input from :meth:`q_input`, shape ``(batch_size, input_dim)``
+        :param critic_index: which critic to use for each sample, shape ``(batch_size,)``
+        """
+        order = th.argsort(critic_index)
+        counts = th.bincount(critic_index, minlength=self.n_critics).tolist()
+        values = [
+            q_net(q_input[rows])
+            for q_net, rows, count in zip(self.q_networks, order.split(counts), counts, strict=True)
+            if count > 0
+        ]
+        return th.zeros_like(q_input[:, :1]).index_copy(0, order, th.cat(values))
+
+    def q1_forward(self, obs: PyTorchObs, actions: th.Tensor) -> th.Tensor:
+        """The first critic's value only, without gradient to the features extractor (as SB3's TD3 uses)."""
+        with th.no_grad():
+            features = self.extract_features(obs, self.features_extractor)
+        return self.q_networks[0](th.cat([features, actions], dim=1))
+
+    def parameter_groups(self) -> list[dict[str, Any]]:
+        """
+        Optimizer parameter groups: one per critic (key ``critic_index``), then, if the critic owns a features
+        extractor with parameters, one group for it (key ``critic_index=None``).
+        """
+        groups: list[dict[str, Any]] = [
+            {"params": list(q_net.parameters()), "critic_index": idx} for idx, q_net in enumerate(self.q_networks)
+        ]
+        if not self.share_features_extractor:
+            shared = list(self.features_extractor.parameters())
+            if shared:
+                groups.append({"params": shared, "critic_index": None})
+        return groups
+
+
+class SERAPolicy(SACPolicy):
+    """
+    SAC's policy with a heterogeneous ensemble of critics trained by one optimizer, one parameter group per critic.
+
+    Critic architectures: ``critic_archs`` when given; else, when ``net_arch`` is given, its critic part for every
+    critic (a homogeneous ensemble); else the paper's Table 4, critic ``i`` using ``CRITIC_ARCHS[i % 5]``.
+    The actor uses ``net_arch``'s actor part, ``[256, 256]`` by default.
+
+    :param observation_space: Observation space
+    :param action_space: Action space
+    :param lr_schedule: Learning rate schedule (could be constant)
+    :param net_arch: The specification of the policy and value networks (as for SAC)
+    :param activation_fn: Activation function
+    :param use_sde: Whether to use State Dependent Exploration or not
+    :param log_std_init: Initial value for the log standard deviation
+    :param use_expln: Use ``expln()`` function instead of ``exp()`` when using gSDE
+    :param clip_mean: Clip the mean output when using gSDE to avoid numerical instability.
+    :param features_extractor_class: Features extractor to use.
+    :param features_extractor_kwargs: Keyword arguments to pass to the features extractor.
+    :param normalize_images: Whether to normalize images or not, dividing by 255.0
+    :param optimizer_class: The optimizer to use, ``th.optim.Adam`` by default
+    :param optimizer_kwargs: Additional keyword arguments, excluding the learning rate, to pass to the optimizer
+        (None: ``{"fused": True}`` for Adam and AdamW)
+    :param n_critics: Number of critics, at least 2 (default 5, as in the paper)
+    :param critic_archs: Hidden layer sizes of each critic (``n_critics`` lists), overrides ``net_arch``
+    :param share_features_extractor: Whether to share the features extractor between the actor and the critics
+    """
+
+    critic: EnsembleCritic  # type: ignore[assignment]
+    critic_target: EnsembleCritic  # type: ignore[assignment]
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Box,
+        lr_schedule: Schedule,
+        net_arch: list[int] | dict[str, list[int]] | None = None,
+        activation_fn: type[nn.Module] = nn.ReLU,
+        use_sde: bool = False,
+        log_std_init: float = -3,
+        use_expln: bool = False,
+        clip_mean: float = 2.0,
+        features_extractor_class: type[BaseFeaturesExtractor] = FlattenExtractor,
+        features_extractor_kwargs: dict[str, Any] | None = None,
+        normalize_images: bool = True,
+        optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
+        optimizer_kwargs: dict[str, Any] | None = None,
+        n_critics: int = DEFAULT_N_CRITICS,
+        critic_archs: list[list[int]] | None = None,
+        share_features_extractor: bool = False,
+    ):
+        if critic_archs is None:
+            if net_arch is None:
+                critic_archs = default_critic_archs(n_critics)
+            else:
+                critic_archs = [list(get_actor_critic_arch(net_arch)[1]) for _ in range(n_critics)]
+        critic_archs = [list(arch) for arch in critic_archs]
+        check_critic_archs(critic_archs, n_critics)
+        if optimizer_kwargs is None and optimizer_class in (th.optim.Adam, th.optim.AdamW):
+            # One fused kernel per parameter group instead of a dozen small ops per parameter tensor
+            optimizer_kwargs = {"fused": True}
+        self.critic_archs = critic_archs
+        super().__init__(
+            observation_space,
+            action_space,
+            lr_schedule,
+            net_arch=net_arch,
+            activation_fn=activation_fn,
+            use_sde=use_sde,
+            log_std_init=log_std_init,
+            use_expln=use_expln,
+            clip_mean=clip_mean,
+            features_extractor_class=features_extractor_class,
+            features_extractor_kwargs=features_extractor_kwargs,
+            normalize_images=normalize_images,
+            optimizer_class=optimizer_class,
+            optimizer_kwargs=optimizer_kwargs,
+            n_critics=n_critics,
+            share_features_extractor=share_features_extractor,
+        )
+
+    def _build(self, lr_schedule: Schedule) -> None:
+        super()._build(lr_schedule)
+        # SACPolicy built one parameter group for all critics: rebuild with one group per critic, so that
+        # each critic can have its own step size
+        self.critic.optimizer = self.optimizer_class(
+            self.critic.parameter_groups(),
+            lr=lr_schedule(1),  # type: ignore[call-arg]
+            **self.optimizer_kwargs,
+        )
+
+    def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> EnsembleCritic:  # type: ignore[override]
+        critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
+        # SACPolicy's kwargs describe a homogeneous ensemble: replace them by the per-critic architectures
+        del critic_kwargs["net_arch"], critic_kwargs["n_critics"]
+        return EnsembleCritic(critic_archs=self.critic_archs, **critic_kwargs).to(self.device)
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        data.update(critic_archs=self.critic_archs)
+        return data
+
+
+MlpPolicy = SERAPolicy
+
+
+class CnnPolicy(SERAPolicy):
+    """:class:`SERAPolicy` with SB3's ``NatureCNN`` features extractor, for image observations."""
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Box,
+        lr_schedule: Schedule,
+        features_extractor_class: type[BaseFeaturesExtractor] = NatureCNN,
+        **kwargs: Any,
+    ):
+        super().__init__(
+            observation_space, action_space, lr_schedule, features_extractor_class=features_extractor_class, **kwargs
+        )
+
+
+class MultiInputPolicy(SERAPolicy):
+    """:class:`SERAPolicy` with SB3's ``CombinedExtractor``, for ``Dict`` observations."""
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Box,
+        lr_schedule: Schedule,
+        features_extractor_class: type[BaseFeaturesExtractor] = CombinedExtractor,
+        **kwargs: Any,
+    ):
+        super().__init__(
+            observation_space, action_space, lr_schedule, features_extractor_class=features_extractor_class, **kwargs
+        )

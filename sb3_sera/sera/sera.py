@@ -1,0 +1,514 @@
+"""SERASAC: Soft Actor-Critic with a Soft Ensemble Reliability Aggregation critic (SPEC section 1)."""
+
+from typing import Any, ClassVar, TypeVar
+
+import torch as th
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.noise import ActionNoise
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, PyTorchObs, Schedule
+from stable_baselines3.common.utils import FloatSchedule, polyak_update
+from stable_baselines3.sac import SAC
+
+from sb3_sera.common.checks import check_choice, check_int, check_range
+from sb3_sera.sera.aggregation import (
+    ACTOR_AGGREGATIONS,
+    TARGET_AGGREGATIONS,
+    TEMPERATURE_MODES,
+    ActorAggregation,
+    TargetAggregation,
+    TemperatureMode,
+    aggregate_target,
+    critic_correlation,
+    ensemble_disagreement,
+    median_anchor,
+    selected_critic,
+)
+from sb3_sera.sera.policies import CnnPolicy, EnsembleCritic, MlpPolicy, MultiInputPolicy, SERAPolicy
+from sb3_sera.sera.step_size import StepSizeUpdate, VarianceAdaptiveStepSize, batch_variance
+
+SelfSERASAC = TypeVar("SelfSERASAC", bound="SERASAC")
+
+
+class SERASAC(SAC):
+    """
+    Soft Ensemble Reliability Aggregation on top of Soft Actor-Critic.
+
+    SAC's data flow (replay buffer, squashed Gaussian actor, automatic entropy coefficient, Polyak targets) with
+    ``n_critics`` heterogeneous critics (policy kwarg, default 5) whose target is the median-anchored soft
+    reliability aggregate, each critic trained with its own variance-adaptive learning rate, a median actor and
+    a disagreement-adjusted entropy target. Paper: "SERA: Soft Ensemble Reliability Aggregation for Robust
+    Multi-Agent Reinforcement Learning"; every choice it leaves open is fixed in the project's SPEC.
+
+    With ``policy_kwargs=dict(n_critics=2, net_arch=[256, 256])``, ``target_aggregation="min"``,
+    ``adaptive_critic_lr=False``, ``disagreement_coef=0`` and ``actor_aggregation="min"`` it computes the same
+    losses as SB3's SAC.
+
+    :param policy: The policy model to use (MlpPolicy, CnnPolicy, MultiInputPolicy)
+    :param env: The environment to learn from (if registered in Gym, can be str)
+    :param learning_rate: learning rate of Adam for the actor and the entropy coefficient (and the critics when
+        ``adaptive_critic_lr=False`` and ``critic_learning_rate`` is None); a float > 0 or a schedule of the
+        progress remaining (from 1 to 0)
+    :param buffer_size: size of the replay buffer
+    :param learning_starts: how many steps of the model to collect transitions for before learning starts
+    :param batch_size: Minibatch size ``S`` for each gradient update
+    :param tau: the soft update coefficient of the target critics ("Polyak update"), in [0, 1]
+    :param gamma: the discount factor, in [0, 1]
+    :param train_freq: Update the model every ``train_freq`` steps, or ``(n, "step" | "episode")``
+    :param gradient_steps: How many gradient steps to do after each rollout (``-1``: as many as env steps)
+    :param action_noise: the action noise type (None by default)
+    :param replay_buffer_class: Replay buffer class to use (for instance ``HerReplayBuffer``)
+    :param replay_buffer_kwargs: Keyword arguments to pass to the replay buffer on creation.
+    :param optimize_memory_usage: Enable a memory efficient variant of the replay buffer
+    :param n_steps: n-step returns (SB3's ``NStepReplayBuffer``) when > 1
+    :param ent_coef: Entropy regularization coefficient: a float > 0, ``"auto"`` or ``"auto_<init>"``
+    :param target_update_interval: update the target critics every ``target_update_interval`` gradient steps
+    :param target_entropy: target entropy ``H_target`` when learning ``ent_coef`` (``"auto"``: ``-dim(A)``)
+    :param use_sde: Whether to use generalized State Dependent Exploration (gSDE)
+    :param sde_sample_freq: Sample a new noise matrix every n steps when using gSDE (-1: once per rollout)
+    :param use_sde_at_warmup: Whether to use gSDE instead of uniform sampling during the warm up phase
+    :param stats_window_size: Window size for the rollout logging
+    :param target_aggregation: how the target critics' values form the TD target: ``"sera"`` (the paper's
+        method), ``"mean"`` (*Ensemble Mean*), ``"median"`` or ``"min"`` (clipped double Q over all critics)
+    :param sera_alpha: weight ``alpha`` of the median anchor in the SERA target, in [0, 1]
+    :param sera_temperature: softmax temperature ``tau`` of the reliability weights, > 0, in reward units
+    :param sera_temperature_mode: ``"absolute"``, or ``"relative"`` to scale ``tau`` per sample by the mean
+        deviation of the non-median critics (scale-free weights)
+    :param sera_include_median: the *SERA-Median* ablation: the median critic also enters the softmax
+    :param actor_aggregation: how the online critics' values at the actor's actions are reduced for the actor
+        loss: ``"median"`` (paper), ``"mean"`` or ``"min"``
+    :param adaptive_critic_lr: use the variance-adaptive per-critic learning rate (False: *SERA-NoLR*)
+    :param critic_lr_max: critic learning rate at full gain ``kappa = 1``, > 0
+    :param kappa_min: floor of the rescaled gain, in [0, 1]; critic rates lie in
+        ``[kappa_min * critic_lr_max, critic_lr_max]``
+    :param kappa_eps: ``eta`` in ``kappa = P / (P + R + eta)``, > 0
+    :param td_variance_ema: ``b_v``, weight of the past in the EMA of the TD-residual variance, in [0, 1)
+    :param estimation_variance_ema: ``b_P``, weight of the past in the EMA of the estimation variance, in [0, 1)
+    :param critic_learning_rate: critic learning rate (float > 0 or schedule) when ``adaptive_critic_lr=False``,
+        and for a features extractor owned by the critics; None: ``learning_rate``
+    :param disagreement_coef: ``beta >= 0`` of the disagreement-adjusted entropy target
+        ``H_eff = H_target - beta * U`` (0: SAC's temperature tuning)
+    :param tensorboard_log: the log location for tensorboard (if None, no logging)
+    :param policy_kwargs: additional arguments to be passed to the policy on creation, e.g. ``n_critics`` and
+        ``critic_archs`` (see :class:`~sb3_sera.sera.policies.SERAPolicy`)
+    :param verbose: Verbosity level: 0 for no output, 1 for info messages, 2 for debug messages
+    :param seed: Seed for the pseudo random generators
+    :param device: Device (cpu, cuda, ...) on which the code should be run.
+    :param _init_setup_model: Whether or not to build the network at the creation of the instance
+    """
+
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
+        "MlpPolicy": MlpPolicy,
+        "CnnPolicy": CnnPolicy,
+        "MultiInputPolicy": MultiInputPolicy,
+    }
+    policy: SERAPolicy
+    critic: EnsembleCritic  # type: ignore[assignment]
+    critic_target: EnsembleCritic  # type: ignore[assignment]
+    step_size: VarianceAdaptiveStepSize
+
+    def __init__(
+        self,
+        policy: str | type[SERAPolicy],
+        env: GymEnv | str,
+        learning_rate: float | Schedule = 3e-4,
+        buffer_size: int = 1_000_000,
+        learning_starts: int = 100,
+        batch_size: int = 256,
+        tau: float = 0.005,
+        gamma: float = 0.99,
+        train_freq: int | tuple[int, str] = 1,
+        gradient_steps: int = 1,
+        action_noise: ActionNoise | None = None,
+        replay_buffer_class: type[ReplayBuffer] | None = None,
+        replay_buffer_kwargs: dict[str, Any] | None = None,
+        optimize_memory_usage: bool = False,
+        n_steps: int = 1,
+        ent_coef: str | float = "auto",
+        target_update_interval: int = 1,
+        target_entropy: str | float = "auto",
+        use_sde: bool = False,
+        sde_sample_freq: int = -1,
+        use_sde_at_warmup: bool = False,
+        stats_window_size: int = 100,
+        target_aggregation: TargetAggregation = "sera",
+        sera_alpha: float = 0.5,
+        sera_temperature: float = 1.0,
+        sera_temperature_mode: TemperatureMode = "absolute",
+        sera_include_median: bool = False,
+        actor_aggregation: ActorAggregation = "median",
+        adaptive_critic_lr: bool = True,
+        critic_lr_max: float = 5e-4,
+        kappa_min: float = 0.2,
+        kappa_eps: float = 1e-8,
+        td_variance_ema: float = 0.9,
+        estimation_variance_ema: float = 0.9,
+        critic_learning_rate: float | Schedule | None = None,
+        disagreement_coef: float = 0.01,
+        tensorboard_log: str | None = None,
+        policy_kwargs: dict[str, Any] | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: th.device | str = "auto",
+        _init_setup_model: bool = True,
+    ):
+        self.target_aggregation = target_aggregation
+        self.sera_alpha = sera_alpha
+        self.sera_temperature = sera_temperature
+        self.sera_temperature_mode = sera_temperature_mode
+        self.sera_include_median = sera_include_median
+        self.actor_aggregation = actor_aggregation
+        self.adaptive_critic_lr = adaptive_critic_lr
+        self.critic_lr_max = critic_lr_max
+        self.kappa_min = kappa_min
+        self.kappa_eps = kappa_eps
+        self.td_variance_ema = td_variance_ema
+        self.estimation_variance_ema = estimation_variance_ema
+        self.critic_learning_rate = critic_learning_rate
+        self.disagreement_coef = disagreement_coef
+        _check_sac_hyperparameters(
+            learning_rate=learning_rate,
+            buffer_size=buffer_size,
+            learning_starts=learning_starts,
+            batch_size=batch_size,
+            tau=tau,
+            gamma=gamma,
+            gradient_steps=gradient_steps,
+            n_steps=n_steps,
+            ent_coef=ent_coef,
+            target_update_interval=target_update_interval,
+        )
+        self._check_sera_hyperparameters()
+        super().__init__(
+            policy,
+            env,
+            learning_rate=learning_rate,
+            buffer_size=buffer_size,
+            learning_starts=learning_starts,
+            batch_size=batch_size,
+            tau=tau,
+            gamma=gamma,
+            train_freq=train_freq,
+            gradient_steps=gradient_steps,
+            action_noise=action_noise,
+            replay_buffer_class=replay_buffer_class,
+            replay_buffer_kwargs=replay_buffer_kwargs,
+            optimize_memory_usage=optimize_memory_usage,
+            n_steps=n_steps,
+            ent_coef=ent_coef,
+            target_update_interval=target_update_interval,
+            target_entropy=target_entropy,
+            use_sde=use_sde,
+            sde_sample_freq=sde_sample_freq,
+            use_sde_at_warmup=use_sde_at_warmup,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            policy_kwargs=policy_kwargs,
+            verbose=verbose,
+            seed=seed,
+            device=device,
+            _init_setup_model=_init_setup_model,
+        )
+
+    def _check_sera_hyperparameters(self) -> None:
+        check_choice("target_aggregation", self.target_aggregation, TARGET_AGGREGATIONS)
+        check_choice("actor_aggregation", self.actor_aggregation, ACTOR_AGGREGATIONS)
+        check_choice("sera_temperature_mode", self.sera_temperature_mode, TEMPERATURE_MODES)
+        check_choice("sera_include_median", self.sera_include_median, (True, False))
+        check_choice("adaptive_critic_lr", self.adaptive_critic_lr, (True, False))
+        check_range("sera_alpha", self.sera_alpha, 0.0, 1.0)
+        check_range("sera_temperature", self.sera_temperature, 0.0, None, low_inclusive=False)
+        check_range("critic_lr_max", self.critic_lr_max, 0.0, None, low_inclusive=False)
+        check_range("kappa_min", self.kappa_min, 0.0, 1.0)
+        check_range("kappa_eps", self.kappa_eps, 0.0, None, low_inclusive=False)
+        check_range("td_variance_ema", self.td_variance_ema, 0.0, 1.0, high_inclusive=False)
+        check_range("estimation_variance_ema", self.estimation_variance_ema, 0.0, 1.0, high_inclusive=False)
+        check_range("disagreement_coef", self.disagreement_coef, 0.0, None)
+        if self.critic_learning_rate is not None and not callable(self.critic_learning_rate):
+            check_range("critic_learning_rate", self.critic_learning_rate, 0.0, None, low_inclusive=False)
+
+    def _setup_model(self) -> None:
+        super()._setup_model()
+        self.critic_lr_schedule = FloatSchedule(
+            self.learning_rate if self.critic_learning_rate is None else self.critic_learning_rate
+        )
+        self.step_size = VarianceAdaptiveStepSize(
+            self.critic.n_critics,
+            td_variance_ema=self.td_variance_ema,
+            estimation_variance_ema=self.estimation_variance_ema,
+            kappa_eps=self.kappa_eps,
+            lr_max=self.critic_lr_max,
+            kappa_min=self.kappa_min,
+        ).to(self.device)
+        self._actor_parameters: list[th.Tensor] = list(self.actor.parameters())
+        self._critic_parameters: list[th.Tensor] = list(self.critic.parameters())
+        self._critic_target_parameters: list[th.Tensor] = list(self.critic_target.parameters())
+
+    def _update_critic_learning_rates(self, update: StepSizeUpdate | None) -> list[float]:
+        """
+        Set the critic optimizer's step sizes: the critic schedule for every group, then, with the adaptive
+        step size, each critic's own rate. Runs after SB3's ``_update_learning_rate``, which would set one value.
+
+        :return: the learning rate of each critic
+        """
+        groups = self.critic.optimizer.param_groups
+        scheduled = self.critic_lr_schedule(self._current_progress_remaining)
+        rates = update.learning_rates.tolist() if update is not None else [scheduled] * self.critic.n_critics
+        for group in groups:
+            index = group["critic_index"]
+            group["lr"] = scheduled if index is None else rates[index]
+        return rates
+
+    def _check_finite(self, gradient_step: int, quantities: dict[str, th.Tensor], sentinel: th.Tensor) -> None:
+        """
+        Raise ``FloatingPointError`` naming the first non-finite quantity (cheap path: one check of ``sentinel``,
+        a sum that is non-finite whenever one of the quantities is).
+        """
+        if bool(th.isfinite(sentinel)):
+            return
+        for name, value in quantities.items():
+            if not bool(th.isfinite(value).all()):
+                raise FloatingPointError(
+                    f"Non-finite {name} at gradient step {self._n_updates + gradient_step + 1} "
+                    f"(num_timesteps={self.num_timesteps}): training stopped before the parameters it drives were "
+                    "changed, so the model can still be saved. Check the rewards and observations for inf/NaN, "
+                    "or lower the learning rates."
+                )
+
+    def train(self, gradient_steps: int, batch_size: int = 64) -> None:
+        # Switch to train mode (this affects batch norm / dropout)
+        self.policy.set_training_mode(True)
+        optimizers = [self.actor.optimizer]
+        if self.ent_coef_optimizer is not None:
+            optimizers.append(self.ent_coef_optimizer)
+        self._update_learning_rate(optimizers)
+        critic_rates = self._update_critic_learning_rates(None)
+
+        ent_coef_losses: list[th.Tensor] = []
+        ent_coefs: list[th.Tensor] = []
+        actor_losses: list[th.Tensor] = []
+        critic_losses: list[th.Tensor] = []
+
+        for gradient_step in range(gradient_steps):
+            replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
+            # For n-step replay, discount factor is gamma**n_steps (when no early termination)
+            discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
+
+            if self.use_sde:
+                self.actor.reset_noise()
+
+            # Action by the current actor for the sampled state (drawn first, as in SAC, for equal random streams)
+            actions_pi, log_prob = self.actor.action_log_prob(replay_data.observations)
+            log_prob = log_prob.reshape(-1, 1)
+            if self.ent_coef_optimizer is not None and self.log_ent_coef is not None:
+                ent_coef = th.exp(self.log_ent_coef.detach())
+            else:
+                ent_coef = self.ent_coef_tensor
+
+            with th.no_grad():
+                # Target actions from the current actor, target critics' values q_i(s', a'), shape (S, K)
+                next_actions, next_log_prob = self.actor.action_log_prob(replay_data.next_observations)
+                next_q_values = self.critic_target.q_values(replay_data.next_observations, next_actions)
+                next_q_aggregate = aggregate_target(
+                    next_q_values,
+                    self.target_aggregation,
+                    alpha=self.sera_alpha,
+                    temperature=self.sera_temperature,
+                    include_median=self.sera_include_median,
+                    temperature_mode=self.sera_temperature_mode,
+                ).unsqueeze(1)
+                next_q = next_q_aggregate - ent_coef * next_log_prob.reshape(-1, 1)
+                target_q_values = replay_data.rewards + (1 - replay_data.dones) * discounts * next_q
+
+            # Each online critic regresses on the same target: delta_i = y - Q_i(s, a), shape (S, K)
+            current_q_values = self.critic.q_values(replay_data.observations, replay_data.actions)
+            td_errors = target_q_values - current_q_values
+            critic_loss = 0.5 * td_errors.pow(2).mean(dim=0).sum()
+
+            # Variance-adaptive step size from detached tensors (computed now, stored once checked)
+            update = self.step_size.compute(td_errors.detach(), next_q_values - next_q_aggregate)
+
+            # Disagreement-adjusted entropy target H_eff = H_target - beta * U at the replay pairs
+            assert isinstance(self.target_entropy, float)
+            target_entropy: th.Tensor | float = self.target_entropy
+            if self.disagreement_coef > 0:
+                disagreement = ensemble_disagreement(current_q_values.detach()).unsqueeze(1)
+                target_entropy = self.target_entropy - self.disagreement_coef * disagreement
+            ent_coef_loss = None
+            if self.ent_coef_optimizer is not None and self.log_ent_coef is not None:
+                ent_coef_loss = -(self.log_ent_coef * (log_prob + target_entropy).detach()).mean()
+
+            # Nothing has changed yet: stop here if a value is not finite
+            # (ordered so that a cause is named before its consequences)
+            quantities = {"entropy coefficient": ent_coef, "TD target": target_q_values, "critic loss": critic_loss}
+            sentinel = critic_loss + ent_coef.sum()
+            if ent_coef_loss is not None:
+                quantities["entropy coefficient loss"] = ent_coef_loss
+                sentinel = sentinel + ent_coef_loss
+            if self.adaptive_critic_lr:
+                quantities["critic step size"] = update.learning_rates
+                sentinel = sentinel + update.learning_rates.sum()
+            self._check_finite(gradient_step, quantities, sentinel)
+
+            self.step_size.commit(update)
+            if self.adaptive_critic_lr:
+                critic_rates = self._update_critic_learning_rates(update)
+
+            # Optimize entropy coefficient, also called entropy temperature or alpha in the paper
+            if ent_coef_loss is not None and self.ent_coef_optimizer is not None:
+                self.ent_coef_optimizer.zero_grad()
+                ent_coef_loss.backward()
+                self.ent_coef_optimizer.step()
+                ent_coef_losses.append(ent_coef_loss.detach())
+            ent_coefs.append(ent_coef)
+
+            # Optimize the critics, each with the step size of its own parameter group
+            self.critic.optimizer.zero_grad()
+            critic_loss.backward()
+            self.critic.optimizer.step()
+            critic_losses.append(critic_loss.detach())
+
+            # Actor loss against the aggregated online critics
+            actor_loss = (ent_coef * log_prob - self._actor_q_value(replay_data.observations, actions_pi)).mean()
+            self._check_finite(gradient_step, {"actor loss": actor_loss}, actor_loss)
+            self.actor.optimizer.zero_grad()
+            # Gradients for the actor only: the critics' weight gradients would be computed and thrown away
+            actor_loss.backward(inputs=self._actor_parameters)
+            self.actor.optimizer.step()
+            actor_losses.append(actor_loss.detach())
+
+            # Update target networks
+            if gradient_step % self.target_update_interval == 0:
+                with th.no_grad():
+                    th._foreach_mul_(self._critic_target_parameters, 1.0 - self.tau)
+                    th._foreach_add_(self._critic_target_parameters, self._critic_parameters, alpha=self.tau)
+                # Copy running stats, see SB3 GH issue #996
+                polyak_update(self.batch_norm_stats, self.batch_norm_stats_target, 1.0)
+
+        self._n_updates += gradient_steps
+
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        self.logger.record("train/ent_coef", th.stack(ent_coefs).mean().item())
+        self.logger.record("train/actor_loss", th.stack(actor_losses).mean().item())
+        self.logger.record("train/critic_loss", th.stack(critic_losses).mean().item())
+        if len(ent_coef_losses) > 0:
+            self.logger.record("train/ent_coef_loss", th.stack(ent_coef_losses).mean().item())
+        self._record_diagnostics(
+            target_q_values, next_q_values, next_q_aggregate, current_q_values.detach(), target_entropy, update
+        )
+        for index, rate in enumerate(critic_rates):
+            self.logger.record(f"train/critic_lr_{index}", rate)
+
+    def _actor_q_value(self, observations: PyTorchObs, actions_pi: th.Tensor) -> th.Tensor:
+        """
+        The online critics' value of the actor's actions, aggregated by ``actor_aggregation``, shape ``(S, 1)``.
+
+        For the median and the min only the selected critic carries a gradient, so all critics run without a
+        graph to find it and only the selected one runs again, per sample, with a graph.
+        """
+        q_input = self.critic.q_input(observations, actions_pi)
+        if self.actor_aggregation == "mean":
+            return self.critic.q_values_from_input(q_input).mean(dim=1, keepdim=True)
+        with th.no_grad():
+            q_values = self.critic.q_values_from_input(q_input)
+            index = selected_critic(q_values, self.actor_aggregation)
+        assert index is not None
+        return self.critic.selected_q_values(q_input, index)
+
+    def _record_diagnostics(
+        self,
+        target_q_values: th.Tensor,
+        next_q_values: th.Tensor,
+        next_q_aggregate: th.Tensor,
+        current_q_values: th.Tensor,
+        target_entropy: th.Tensor | float,
+        update: StepSizeUpdate,
+    ) -> None:
+        """Record the SERA diagnostics of the last gradient step (SPEC section 1) with one device transfer."""
+        with th.no_grad():
+            scalars = th.stack(
+                [
+                    batch_variance(target_q_values).squeeze(0),
+                    ensemble_disagreement(current_q_values).mean(),
+                    th.as_tensor(target_entropy, dtype=th.float32, device=self.device).mean(),
+                    next_q_aggregate.mean(),
+                    median_anchor(next_q_values)[0].mean(),
+                    critic_correlation(current_q_values),
+                ]
+            ).tolist()
+            per_critic = th.stack([update.kappa, update.estimation_var, update.measurement_var]).tolist()
+        names = ("td_target_var", "critic_disagreement", "target_entropy_eff", "q_sera_mean", "q_median_mean", "critic_corr")
+        for name, value in zip(names, scalars, strict=True):
+            self.logger.record(f"train/{name}", value)
+        for prefix, values in zip(("kappa", "P", "R"), per_critic, strict=True):
+            for index, value in enumerate(values):
+                self.logger.record(f"train/{prefix}_{index}", value)
+
+    def learn(
+        self: SelfSERASAC,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 4,
+        tb_log_name: str = "SERASAC",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfSERASAC:
+        return super().learn(
+            total_timesteps=total_timesteps,
+            callback=callback,
+            log_interval=log_interval,
+            tb_log_name=tb_log_name,
+            reset_num_timesteps=reset_num_timesteps,
+            progress_bar=progress_bar,
+        )
+
+    def _excluded_save_params(self) -> list[str]:
+        return [
+            *super()._excluded_save_params(),
+            "step_size",
+            "critic_lr_schedule",
+            "_actor_parameters",
+            "_critic_parameters",
+            "_critic_target_parameters",
+        ]
+
+    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
+        state_dicts, saved_pytorch_variables = super()._get_torch_save_params()
+        return [*state_dicts, "step_size"], saved_pytorch_variables
+
+
+def _check_sac_hyperparameters(
+    learning_rate: float | Schedule,
+    buffer_size: int,
+    learning_starts: int,
+    batch_size: int,
+    tau: float,
+    gamma: float,
+    gradient_steps: int,
+    n_steps: int,
+    ent_coef: str | float,
+    target_update_interval: int,
+) -> None:
+    """Raise ``ValueError`` for a SAC hyperparameter outside its range, naming it, its value and the range."""
+    if not callable(learning_rate):
+        check_range("learning_rate", learning_rate, 0.0, None, low_inclusive=False)
+    check_int("buffer_size", buffer_size, 1)
+    check_int("learning_starts", learning_starts, 0)
+    check_int("batch_size", batch_size, 1)
+    check_range("tau", tau, 0.0, 1.0)
+    check_range("gamma", gamma, 0.0, 1.0)
+    if gradient_steps != -1:
+        check_int("gradient_steps", gradient_steps, 0)
+    check_int("n_steps", n_steps, 1)
+    check_int("target_update_interval", target_update_interval, 1)
+    if isinstance(ent_coef, str):
+        valid = ent_coef == "auto"
+        if ent_coef.startswith("auto_"):
+            try:
+                valid = float(ent_coef[len("auto_") :]) > 0
+            except ValueError:
+                valid = False
+        if not valid:
+            raise ValueError(f"ent_coef={ent_coef!r} is invalid: expected a number > 0, 'auto' or 'auto_<initial value > 0>'")
+    else:
+        check_range("ent_coef", ent_coef, 0.0, None, low_inclusive=False)

@@ -1,0 +1,167 @@
+"""The aggregation rules of SERA against hand-computed values (SPEC section 1, steps 2-4, 7, 8)."""
+
+import itertools
+import math
+
+import pytest
+import torch as th
+
+from sb3_sera.sera.aggregation import (
+    aggregate_actor,
+    aggregate_target,
+    critic_correlation,
+    ensemble_disagreement,
+    median_anchor,
+    selected_critic,
+    sera_aggregate,
+)
+
+
+def test_median_anchor_odd_and_even():
+    values, index = median_anchor(th.tensor([[4.0, 1.0, 2.0], [1.0, 3.0, 2.0]]))
+    assert values.tolist() == [2.0, 2.0]
+    assert index.tolist() == [2, 2]
+    # Even K: the lower middle value, so the anchor is one real critic
+    values, index = median_anchor(th.tensor([[10.0, 1.0, 3.0, 2.0]]))
+    assert values.tolist() == [2.0]
+    assert index.tolist() == [3]
+
+
+def test_sera_weights_and_value_by_hand():
+    # q = (1, 2, 4): median 2 (index 1), deviations (1, 0, 2); softmax over critics 0 and 2 with tau = 1
+    result = sera_aggregate(th.tensor([[1.0, 2.0, 4.0]]), alpha=0.5, temperature=1.0)
+    w0 = 1.0 / (1.0 + math.exp(-1.0))  # e^-1 / (e^-1 + e^-2) = 0.7310586
+    assert result.median_index.tolist() == [1]
+    assert result.weights[0].tolist() == pytest.approx([w0, 0.0, 1.0 - w0], abs=1e-6)
+    rest = w0 * 1.0 + (1.0 - w0) * 4.0  # 1.8068243
+    assert result.value.item() == pytest.approx(0.5 * 2.0 + 0.5 * rest, abs=1e-6)
+    assert result.value.item() == pytest.approx(1.9034121, abs=1e-6)
+
+
+def test_alpha_extremes():
+    q = th.tensor([[1.0, 2.0, 4.0]])
+    assert sera_aggregate(q, alpha=1.0).value.item() == pytest.approx(2.0)
+    rest = (math.exp(-1) * 1 + math.exp(-2) * 4) / (math.exp(-1) + math.exp(-2))
+    assert sera_aggregate(q, alpha=0.0).value.item() == pytest.approx(rest, abs=1e-6)
+
+
+def test_temperature_sharpens_weights():
+    q = th.tensor([[1.0, 2.0, 4.0]])
+    cold = sera_aggregate(q, temperature=0.01).weights[0]
+    hot = sera_aggregate(q, temperature=100.0).weights[0]
+    assert cold.tolist() == pytest.approx([1.0, 0.0, 0.0], abs=1e-6)
+    assert hot.tolist() == pytest.approx([0.5, 0.0, 0.5], abs=1e-2)
+
+
+def test_even_number_of_critics():
+    # q = (1, 2, 3, 10): median 2 (index 1), deviations (1, 0, 1, 8)
+    result = sera_aggregate(th.tensor([[1.0, 2.0, 3.0, 10.0]]), alpha=0.5, temperature=1.0)
+    z = 2 * math.exp(-1) + math.exp(-8)
+    expected = [math.exp(-1) / z, 0.0, math.exp(-1) / z, math.exp(-8) / z]
+    assert result.weights[0].tolist() == pytest.approx(expected, abs=1e-6)
+    rest = (math.exp(-1) * (1 + 3) + math.exp(-8) * 10) / z
+    assert result.value.item() == pytest.approx(0.5 * 2 + 0.5 * rest, abs=1e-5)
+
+
+def test_ties_exclude_only_the_median_index():
+    result = sera_aggregate(th.tensor([[3.0, 3.0, 3.0]]))
+    m = result.median_index.item()
+    weights = result.weights[0]
+    assert weights[m].item() == 0.0
+    assert [weights[i].item() for i in range(3) if i != m] == pytest.approx([0.5, 0.5])
+    assert result.value.item() == pytest.approx(3.0)
+    # A tie between the median and another critic: the twin (deviation 0) keeps a weight of its own
+    result = sera_aggregate(th.tensor([[1.0, 5.0, 5.0]]), alpha=0.0)
+    m = result.median_index.item()
+    twin = 3 - m  # the other index holding 5
+    assert m in (1, 2)
+    assert result.weights[0, twin].item() == pytest.approx(1.0 / (1.0 + math.exp(-4.0)), abs=1e-6)
+
+
+def test_include_median_ablation():
+    # SERA-Median: the median critic (deviation 0) enters the softmax
+    result = sera_aggregate(th.tensor([[1.0, 2.0, 4.0]]), alpha=0.5, include_median=True)
+    z = math.exp(-1) + 1.0 + math.exp(-2)
+    assert result.weights[0].tolist() == pytest.approx([math.exp(-1) / z, 1 / z, math.exp(-2) / z], abs=1e-6)
+    rest = (math.exp(-1) * 1 + 2 + math.exp(-2) * 4) / z  # 1.9353319
+    assert result.value.item() == pytest.approx(0.5 * 2 + 0.5 * rest, abs=1e-6)
+
+
+def test_relative_temperature_is_scale_free():
+    q = th.tensor([[1.0, 2.0, 4.0]])
+    result = sera_aggregate(q, temperature=1.0, temperature_mode="relative")
+    # mean non-median deviation (1 + 2) / 2 = 1.5, so the effective tau is 1.5
+    w0 = 1.0 / (1.0 + math.exp(-1.0 / 1.5))
+    assert result.weights[0].tolist() == pytest.approx([w0, 0.0, 1.0 - w0], abs=1e-6)
+    scaled = sera_aggregate(1000.0 * q, temperature=1.0, temperature_mode="relative")
+    assert th.allclose(scaled.weights, result.weights, atol=1e-6)
+    # An ensemble in full agreement does not divide by zero
+    assert th.isfinite(sera_aggregate(th.ones(2, 5), temperature_mode="relative").value).all()
+
+
+def test_weights_sum_to_one_and_follow_deviation_order():
+    # Lemma 4.1: among non-median critics, a smaller deviation gets a larger weight
+    generator = th.Generator().manual_seed(0)
+    q = th.randn(512, 5, generator=generator) * 10
+    result = sera_aggregate(q, temperature=3.0)
+    assert th.allclose(result.weights.sum(dim=1), th.ones(512), atol=1e-6)
+    deviations = (q - result.median.unsqueeze(1)).abs()
+    for row in range(q.shape[0]):
+        others = [i for i in range(5) if i != result.median_index[row]]
+        order = sorted(others, key=lambda i: deviations[row, i].item())
+        weights = [result.weights[row, i].item() for i in order]
+        assert all(a >= b for a, b in itertools.pairwise(weights))
+        assert result.weights[row, result.median_index[row]] == 0
+
+
+@pytest.mark.parametrize("n_critics", [2, 3, 4, 5, 10])
+def test_convex_combination_bound(n_critics):
+    # Proposition 4.2: min_i q_i <= Q_SERA <= max_i q_i, for any alpha in [0, 1] and tau > 0
+    generator = th.Generator().manual_seed(n_critics)
+    q = th.randn(1000, n_critics, generator=generator) * 50
+    for alpha in (0.0, 0.3, 1.0):
+        for temperature in (0.01, 1.0, 100.0):
+            for include_median in (False, True):
+                value = sera_aggregate(q, alpha, temperature, include_median).value
+                assert (value >= q.min(dim=1).values - 1e-4).all()
+                assert (value <= q.max(dim=1).values + 1e-4).all()
+
+
+def test_target_aggregation_modes():
+    q = th.tensor([[1.0, 2.0, 4.0], [3.0, -1.0, 0.0]])
+    assert aggregate_target(q, "mean").tolist() == pytest.approx([7 / 3, 2 / 3])
+    assert aggregate_target(q, "median").tolist() == [2.0, 0.0]
+    assert aggregate_target(q, "min").tolist() == [1.0, -1.0]
+    assert aggregate_target(q, "sera", alpha=0.5, temperature=1.0)[0].item() == pytest.approx(1.9034121, abs=1e-6)
+    with pytest.raises(ValueError, match="max"):
+        aggregate_target(q, "max")  # type: ignore[arg-type]
+
+
+def test_actor_aggregation_modes_and_selected_critic():
+    q = th.tensor([[1.0, 2.0, 4.0], [3.0, -1.0, 0.0]], requires_grad=True)
+    assert aggregate_actor(q, "median").tolist() == [2.0, 0.0]
+    assert aggregate_actor(q, "mean").tolist() == pytest.approx([7 / 3, 2 / 3])
+    assert aggregate_actor(q, "min").tolist() == [1.0, -1.0]
+    for mode in ("median", "min"):
+        index = selected_critic(q, mode)
+        assert index is not None
+        assert th.equal(q.gather(1, index.unsqueeze(1)).squeeze(1), aggregate_actor(q, mode))
+    assert selected_critic(q, "mean") is None
+    # The median actor's gradient reaches the median critic only
+    aggregate_actor(q, "median").sum().backward()
+    assert q.grad is not None
+    assert q.grad.tolist() == [[0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+
+
+def test_disagreement_by_hand():
+    # U = mean(|1 - 2|, 0, |4 - 2|) = 1 ; mean(|3 - 0|, |-1 - 0|, 0) = 4 / 3
+    assert ensemble_disagreement(th.tensor([[1.0, 2.0, 4.0], [3.0, -1.0, 0.0]])).tolist() == pytest.approx([1.0, 4 / 3])
+
+
+def test_critic_correlation_by_hand():
+    # Columns (1, 2, 3), (2, 4, 6), (3, 2, 1): pair correlations 1, -1, -1, mean -1/3
+    q = th.tensor([[1.0, 2.0, 3.0], [2.0, 4.0, 2.0], [3.0, 6.0, 1.0]])
+    assert critic_correlation(q).item() == pytest.approx(-1 / 3, abs=1e-6)
+    # A constant critic counts as uncorrelated instead of NaN
+    constant = th.tensor([[1.0, 5.0], [2.0, 5.0], [3.0, 5.0]])
+    assert critic_correlation(constant).item() == 0.0

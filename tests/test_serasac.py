@@ -1,0 +1,319 @@
+"""SERASAC as an SB3 algorithm: training, the per-critic step size, SAC equivalence, save/load, errors."""
+
+import copy
+import itertools
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from gymnasium import spaces
+from stable_baselines3 import SAC
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.evaluation import evaluate_policy
+
+from sb3_sera import SERASAC
+from sb3_sera.sera.policies import CRITIC_ARCHS
+
+ENV_ID = "Pendulum-v1"
+SMALL = dict(learning_starts=50, batch_size=32, buffer_size=2_000)
+
+
+def linear_shapes(module: th.nn.Module) -> list[tuple[int, int]]:
+    return [(layer.in_features, layer.out_features) for layer in module.modules() if isinstance(layer, th.nn.Linear)]
+
+
+def snapshot(model: SERASAC) -> dict[str, th.Tensor]:
+    state = {f"policy.{k}": v.clone() for k, v in model.policy.state_dict().items()}
+    state.update({f"step_size.{k}": v.clone() for k, v in model.step_size.state_dict().items()})
+    if model.log_ent_coef is not None:
+        state["log_ent_coef"] = model.log_ent_coef.detach().clone()
+    return state
+
+
+def assert_same_state(first: dict[str, th.Tensor], second: dict[str, th.Tensor]) -> None:
+    assert first.keys() == second.keys()
+    for key in first:
+        assert th.equal(first[key], second[key]), key
+
+
+def test_default_critics_follow_table_4():
+    model = SERASAC("MlpPolicy", ENV_ID, **SMALL)
+    in_dim = 3 + 1  # Pendulum: 3 observations + 1 action
+    assert model.critic.n_critics == 5
+    for q_net, arch in zip(model.critic.q_networks, CRITIC_ARCHS, strict=True):
+        sizes = [in_dim, *arch, 1]
+        assert linear_shapes(q_net) == list(itertools.pairwise(sizes))
+    # Target critics start as copies of the online critics
+    for online, target in zip(model.critic.parameters(), model.critic_target.parameters(), strict=True):
+        assert th.equal(online, target)
+
+
+def test_critics_with_equal_archs_have_their_own_initialization():
+    model = SERASAC("MlpPolicy", ENV_ID, policy_kwargs=dict(n_critics=6), **SMALL)
+    assert linear_shapes(model.critic.q_networks[0]) == linear_shapes(model.critic.q_networks[5])
+    assert not th.equal(model.critic.q_networks[0][0].weight, model.critic.q_networks[5][0].weight)
+
+
+def test_user_archs_and_homogeneous_net_arch():
+    model = SERASAC("MlpPolicy", ENV_ID, policy_kwargs=dict(n_critics=3, critic_archs=[[8], [16, 8], [4, 4, 4]]), **SMALL)
+    assert [linear_shapes(q)[0][1] for q in model.critic.q_networks] == [8, 16, 4]
+    model = SERASAC("MlpPolicy", ENV_ID, policy_kwargs=dict(n_critics=3, net_arch=[32, 32]), **SMALL)
+    assert all(linear_shapes(q) == [(4, 32), (32, 32), (32, 1)] for q in model.critic.q_networks)
+    assert linear_shapes(model.actor.latent_pi) == [(3, 32), (32, 32)]
+
+
+def test_one_parameter_group_per_critic():
+    model = SERASAC("MlpPolicy", ENV_ID, **SMALL)
+    groups = model.critic.optimizer.param_groups
+    assert [group["critic_index"] for group in groups] == [0, 1, 2, 3, 4]
+    for group, q_net in zip(groups, model.critic.q_networks, strict=True):
+        assert [id(p) for p in group["params"]] == [id(p) for p in q_net.parameters()]
+
+
+def test_learn_logs_diagnostics():
+    model = SERASAC("MlpPolicy", ENV_ID, seed=0, **SMALL).learn(200)
+    logged = model.logger.name_to_value
+    for key in ("td_target_var", "critic_disagreement", "target_entropy_eff", "q_sera_mean", "q_median_mean", "critic_corr"):
+        assert np.isfinite(logged[f"train/{key}"]), key
+    for index in range(5):
+        for prefix in ("kappa", "critic_lr", "P", "R"):
+            assert f"train/{prefix}_{index}" in logged
+    assert logged["train/critic_disagreement"] > 0
+    assert -1.0 <= logged["train/critic_corr"] <= 1.0
+
+
+def test_adaptive_learning_rate_is_the_optimizer_step_size():
+    model = SERASAC("MlpPolicy", ENV_ID, seed=0, learning_rate=3e-4, **SMALL)
+    model.learn(SMALL["learning_starts"])  # fills the buffer, no gradient step yet
+    before = [[p.detach().clone() for p in q.parameters()] for q in model.critic.q_networks]
+    model.train(gradient_steps=1, batch_size=32)
+    logged = model.logger.name_to_value
+    rates = [logged[f"train/critic_lr_{i}"] for i in range(5)]
+    for i, rate in enumerate(rates):
+        # SB3's learning-rate update ran first (3e-4 everywhere), then each critic got its own rate
+        assert model.critic.optimizer.param_groups[i]["lr"] == rate
+        assert rate == pytest.approx(5e-4 * (0.2 + 0.8 * logged[f"train/kappa_{i}"]), rel=1e-5)
+        assert 1e-4 <= rate <= 5e-4
+        # Adam's first step moves each weight by about the learning rate: the rate is a real step size,
+        # not a loss scale (which Adam would cancel)
+        largest_move = max(
+            (p - b).abs().max().item() for p, b in zip(model.critic.q_networks[i].parameters(), before[i], strict=True)
+        )
+        assert largest_move == pytest.approx(rate, rel=1e-3)
+    assert len(set(rates)) > 1
+    assert model.actor.optimizer.param_groups[0]["lr"] == 3e-4
+
+
+def test_fixed_critic_learning_rate_follows_schedule():
+    model = SERASAC("MlpPolicy", ENV_ID, adaptive_critic_lr=False, critic_learning_rate=1e-3, **SMALL).learn(100)
+    assert all(group["lr"] == 1e-3 for group in model.critic.optimizer.param_groups)
+    assert model.logger.name_to_value["train/critic_lr_0"] == 1e-3
+
+
+def test_entropy_target_is_adjusted_by_disagreement():
+    model = SERASAC("MlpPolicy", ENV_ID, seed=0, disagreement_coef=0.5, **SMALL).learn(150)
+    logged = model.logger.name_to_value
+    expected = model.target_entropy - 0.5 * logged["train/critic_disagreement"]
+    assert logged["train/target_entropy_eff"] == pytest.approx(expected, rel=1e-5)
+    assert model.target_entropy == -1.0
+    model = SERASAC("MlpPolicy", ENV_ID, seed=0, disagreement_coef=0.0, **SMALL).learn(150)
+    assert model.logger.name_to_value["train/target_entropy_eff"] == -1.0
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        dict(target_aggregation="mean"),
+        dict(target_aggregation="median"),
+        dict(target_aggregation="min"),
+        dict(sera_include_median=True),
+        dict(sera_temperature_mode="relative"),
+        dict(actor_aggregation="mean"),
+        dict(actor_aggregation="min"),
+        dict(adaptive_critic_lr=False),
+        dict(ent_coef=0.1),
+        dict(n_steps=3),
+        dict(policy_kwargs=dict(n_critics=4)),
+        dict(policy_kwargs=dict(share_features_extractor=True)),
+        dict(use_sde=True),
+    ],
+)
+def test_variants_train(kwargs):
+    params = {**SMALL, **kwargs}
+    model = SERASAC("MlpPolicy", ENV_ID, seed=0, **params).learn(120)
+    assert np.isfinite(model.logger.name_to_value["train/critic_loss"])
+
+
+def test_sac_equivalent_configuration():
+    """n_critics=2, [256, 256] critics, min target and actor, fixed lr, beta=0: SB3 SAC's losses and updates."""
+    env = make_vec_env(ENV_ID, n_envs=1, seed=0)
+    sac = SAC("MlpPolicy", env, seed=0, learning_starts=200, batch_size=64)
+    sac.learn(200)
+    sera = SERASAC(
+        "MlpPolicy",
+        env,
+        seed=1,
+        learning_starts=200,
+        batch_size=64,
+        target_aggregation="min",
+        actor_aggregation="min",
+        adaptive_critic_lr=False,
+        disagreement_coef=0.0,
+        policy_kwargs=dict(n_critics=2, net_arch=[256, 256]),
+    )
+    sera.learn(1)  # sets up the logger
+    sera.policy.load_state_dict(sac.policy.state_dict())
+    sera.replay_buffer = copy.deepcopy(sac.replay_buffer)
+    for step in range(3):
+        losses = {}
+        for model in (sac, sera):
+            np.random.seed(step)
+            th.manual_seed(step)
+            model.train(gradient_steps=1, batch_size=64)
+            losses[type(model).__name__] = {
+                key: model.logger.name_to_value[f"train/{key}"] for key in ("critic_loss", "actor_loss", "ent_coef_loss")
+            }
+        for key, value in losses["SAC"].items():
+            assert losses["SERASAC"][key] == pytest.approx(value, rel=1e-4, abs=1e-6), (step, key)
+        for (name, p_sac), p_sera in zip(sac.policy.state_dict().items(), sera.policy.state_dict().values(), strict=True):
+            assert th.allclose(p_sac, p_sera, atol=1e-5), (step, name)
+
+
+def test_non_finite_target_stops_before_any_change():
+    model = SERASAC("MlpPolicy", ENV_ID, seed=0, **SMALL).learn(100)
+    before = snapshot(model)
+    model.replay_buffer.rewards[:] = np.nan
+    with pytest.raises(FloatingPointError, match=r"Non-finite TD target at gradient step \d+"):
+        model.train(gradient_steps=1, batch_size=32)
+    assert_same_state(before, snapshot(model))
+
+
+def test_non_finite_entropy_coefficient_is_named():
+    model = SERASAC("MlpPolicy", ENV_ID, seed=0, **SMALL).learn(100)
+    with th.no_grad():
+        model.log_ent_coef.fill_(float("inf"))  # type: ignore[union-attr]
+    with pytest.raises(FloatingPointError, match="entropy coefficient"):
+        model.train(gradient_steps=1, batch_size=32)
+
+
+def test_save_load_continue(tmp_path):
+    model = SERASAC("MlpPolicy", ENV_ID, seed=0, **SMALL).learn(200)
+    observations = np.stack([model.observation_space.sample() for _ in range(8)])
+    actions, _ = model.predict(observations, deterministic=True)
+    model.save(tmp_path / "model")
+    model.save_replay_buffer(tmp_path / "buffer")
+
+    loaded = SERASAC.load(tmp_path / "model", env=make_vec_env(ENV_ID, n_envs=1))
+    loaded_actions, _ = loaded.predict(observations, deterministic=True)
+    np.testing.assert_array_equal(actions, loaded_actions)
+    assert_same_state(snapshot(model), snapshot(loaded))
+    assert loaded.step_size.initialized
+    assert [g["lr"] for g in loaded.critic.optimizer.param_groups] == [g["lr"] for g in model.critic.optimizer.param_groups]
+    assert loaded.policy.critic_archs == model.policy.critic_archs
+    assert loaded.sera_alpha == model.sera_alpha and loaded.target_aggregation == "sera"
+
+    loaded.load_replay_buffer(tmp_path / "buffer")
+    assert loaded.replay_buffer is not None and loaded.replay_buffer.size() == model.replay_buffer.size()
+    state_before = loaded.step_size.td_error_var.clone()
+    loaded.learn(60, reset_num_timesteps=False)
+    assert loaded.num_timesteps == 260
+    assert loaded._n_updates > model._n_updates
+    assert not th.equal(loaded.step_size.td_error_var, state_before)
+
+
+def test_policy_saves_and_loads_on_its_own(tmp_path):
+    model = SERASAC("MlpPolicy", ENV_ID, seed=0, policy_kwargs=dict(n_critics=3, critic_archs=[[8], [16], [8, 8]]), **SMALL)
+    model.policy.save(tmp_path / "policy.pth")
+    policy = type(model.policy).load(tmp_path / "policy.pth")
+    assert policy.critic_archs == [[8], [16], [8, 8]]
+    observation = model.observation_space.sample()
+    np.testing.assert_array_equal(
+        policy.predict(observation, deterministic=True)[0], model.predict(observation, deterministic=True)[0]
+    )
+
+
+def test_deterministic_training():
+    def run() -> dict[str, th.Tensor]:
+        return snapshot(SERASAC("MlpPolicy", ENV_ID, seed=3, **SMALL).learn(150))
+
+    assert_same_state(run(), run())
+
+
+def test_multi_env_progress_bar_and_evaluation():
+    env = make_vec_env(ENV_ID, n_envs=2, seed=0)
+    model = SERASAC("MlpPolicy", env, seed=0, **SMALL).learn(200, progress_bar=True)
+    assert model.num_timesteps == 200
+    mean_return, _ = evaluate_policy(model, env, n_eval_episodes=2)
+    assert np.isfinite(mean_return)
+
+
+class DictObservation(gym.ObservationWrapper):
+    """Pendulum with its observation split into a Dict."""
+
+    def __init__(self, env: gym.Env):
+        super().__init__(env)
+        box = env.observation_space
+        assert isinstance(box, spaces.Box)
+        self.observation_space = spaces.Dict(
+            {"angle": spaces.Box(box.low[:2], box.high[:2]), "velocity": spaces.Box(box.low[2:], box.high[2:])}
+        )
+
+    def observation(self, observation):
+        return {"angle": observation[:2], "velocity": observation[2:]}
+
+
+def test_multi_input_policy(tmp_path):
+    env = DictObservation(gym.make(ENV_ID))
+    model = SERASAC("MultiInputPolicy", env, seed=0, **SMALL).learn(120)
+    observation = env.observation_space.sample()
+    model.save(tmp_path / "model")
+    loaded = SERASAC.load(tmp_path / "model")
+    np.testing.assert_array_equal(
+        model.predict(observation, deterministic=True)[0], loaded.predict(observation, deterministic=True)[0]
+    )
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        (dict(sera_alpha=1.5), r"sera_alpha=1\.5 is out of range: allowed \[0\.0, 1\.0\]"),
+        (dict(sera_temperature=0.0), r"sera_temperature=0\.0 is out of range: allowed \(0\.0, inf\)"),
+        (
+            dict(sera_temperature_mode="log"),
+            "sera_temperature_mode='log' is invalid: expected one of 'absolute', 'relative'",
+        ),
+        (
+            dict(target_aggregation="max"),
+            "target_aggregation='max' is invalid: expected one of 'sera', 'mean', 'median', 'min'",
+        ),
+        (dict(actor_aggregation="sera"), "actor_aggregation='sera' is invalid"),
+        (dict(critic_lr_max=-1e-4), "critic_lr_max"),
+        (dict(kappa_min=1.2), "kappa_min"),
+        (dict(kappa_eps=0), "kappa_eps"),
+        (dict(td_variance_ema=1.0), r"td_variance_ema=1\.0 is out of range: allowed \[0\.0, 1\.0\)"),
+        (dict(estimation_variance_ema=-0.1), "estimation_variance_ema"),
+        (dict(disagreement_coef=-0.01), "disagreement_coef"),
+        (dict(critic_learning_rate=0.0), "critic_learning_rate"),
+        (dict(sera_include_median="yes"), "sera_include_median"),
+        (dict(learning_rate=float("nan")), "learning_rate=nan is invalid"),
+        (dict(gamma=1.1), "gamma"),
+        (dict(tau=-0.5), "tau"),
+        (dict(batch_size=0), "batch_size=0 is out of range: allowed an integer >= 1"),
+        (dict(buffer_size=0), "buffer_size"),
+        (dict(target_update_interval=0), "target_update_interval"),
+        (dict(ent_coef="automatic"), "ent_coef='automatic' is invalid"),
+        (dict(ent_coef=-1.0), "ent_coef"),
+        (dict(policy_kwargs=dict(n_critics=1)), "n_critics=1 is out of range"),
+        (dict(policy_kwargs=dict(n_critics=3, critic_archs=[[8], [8]])), "critic_archs has 2 entries but n_critics=3"),
+        (dict(policy_kwargs=dict(n_critics=2, critic_archs=[[8], [0]])), r"critic_archs\[1\]"),
+    ],
+)
+def test_invalid_hyperparameters(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        SERASAC("MlpPolicy", ENV_ID, **kwargs)
+
+
+def test_discrete_actions_are_not_supported():
+    with pytest.raises(AssertionError, match="only supports"):
+        SERASAC("MlpPolicy", "CartPole-v1")
