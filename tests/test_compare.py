@@ -25,7 +25,7 @@ def test_compare_cli_end_to_end(tmp_path, capsys):
         evaluations = np.load(folder / "evaluations.npz")
         assert evaluations["timesteps"].tolist() == [120, 240]
         assert (folder / "Pendulum-v1.zip").exists()
-        assert (folder / "monitor.csv").exists()
+        assert (folder / "0.monitor.csv").exists()
         result = json.loads((folder / "result.json").read_text())
         assert result["final_return"] == pytest.approx(evaluations["results"][-1].mean())
 

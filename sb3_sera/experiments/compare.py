@@ -2,7 +2,7 @@
 Train several algorithms on one task for several seeds, then tabulate and plot the results.
 
 Each run writes a folder in rl-zoo3's layout, ``<out>/<algo>/<env_id>_<seed>/``, holding the ``evaluations.npz``
-of SB3's ``EvalCallback``, the training ``monitor.csv``, the final model ``<env_id>.zip`` and ``result.json``
+of SB3's ``EvalCallback``, the training ``0.monitor.csv``, the final model ``<env_id>.zip`` and ``result.json``
 (wall time and final evaluation). A run whose ``result.json`` exists is not run again, so an interrupted
 comparison resumes where it stopped.
 """
