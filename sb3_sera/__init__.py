@@ -1,7 +1,14 @@
 """sb3-sera: Soft Ensemble Reliability Aggregation (SERA) for Stable-Baselines3."""
 
-from sb3_sera.sera import SERASAC
+# Import order matters: SERASAC's module imports the CTDE policies, which build on SERASAC's policies
+from sb3_sera.sera import SERASAC  # noqa: I001
+from sb3_sera.ctde import CTDEEnv, register_tasks
+from sb3_sera.ctde.algorithms import MADDPG, MASAC, MATD3
 
 __version__ = "0.1.0"
 
-__all__ = ["SERASAC", "__version__"]
+# The multi-agent tasks' Gymnasium ids (sb3_sera/...), so that `import sb3_sera` (or the zoo's
+# `--gym-packages sb3_sera`) makes them available
+register_tasks()
+
+__all__ = ["MADDPG", "MASAC", "MATD3", "SERASAC", "CTDEEnv", "__version__", "register_tasks"]

@@ -11,6 +11,7 @@ from stable_baselines3.common.utils import FloatSchedule, polyak_update
 from stable_baselines3.sac import SAC
 
 from sb3_sera.common.checks import check_choice, check_int, check_range
+from sb3_sera.ctde.policies import SERACTDEPolicy, fill_agent_layout
 from sb3_sera.sera.aggregation import (
     ACTOR_AGGREGATIONS,
     TARGET_AGGREGATIONS,
@@ -101,6 +102,7 @@ class SERASAC(SAC):
         "MlpPolicy": MlpPolicy,
         "CnnPolicy": CnnPolicy,
         "MultiInputPolicy": MultiInputPolicy,
+        "CTDEPolicy": SERACTDEPolicy,
     }
     policy: SERAPolicy
     critic: EnsembleCritic  # type: ignore[assignment]
@@ -228,6 +230,7 @@ class SERASAC(SAC):
             check_range("critic_learning_rate", self.critic_learning_rate, 0.0, None, low_inclusive=False)
 
     def _setup_model(self) -> None:
+        fill_agent_layout(self)
         super()._setup_model()
         self.critic_lr_schedule = FloatSchedule(
             self.learning_rate if self.critic_learning_rate is None else self.critic_learning_rate
