@@ -3,7 +3,7 @@
 # Import order matters: SERASAC's module imports the CTDE policies, which build on SERASAC's policies
 from sb3_sera.sera import SERASAC  # noqa: I001
 from sb3_sera.ctde import CTDEEnv, register_tasks
-from sb3_sera.ctde.algorithms import MADDPG, MASAC, MATD3
+from sb3_sera.ctde.algorithms import MADDPG, MAPPO, MASAC, MATD3
 
 __version__ = "0.1.0"
 
@@ -11,4 +11,4 @@ __version__ = "0.1.0"
 # `--gym-packages sb3_sera`) makes them available
 register_tasks()
 
-__all__ = ["MADDPG", "MASAC", "MATD3", "SERASAC", "CTDEEnv", "__version__", "register_tasks"]
+__all__ = ["MADDPG", "MAPPO", "MASAC", "MATD3", "SERASAC", "CTDEEnv", "__version__", "register_tasks"]

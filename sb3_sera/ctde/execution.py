@@ -10,7 +10,7 @@ import copy
 import json
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch as th
@@ -20,9 +20,18 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.sac.policies import Actor as SACActor
 from stable_baselines3.td3.policies import Actor as TD3Actor
 
-from sb3_sera.ctde.policies import CTDEActor
+from sb3_sera.ctde.policies import CTDEActor, GaussianAgentActor, MAPPOPolicy
 
-_ACTOR_CLASSES: dict[str, type[BasePolicy]] = {"sac": SACActor, "td3": TD3Actor}
+_ACTOR_CLASSES: dict[str, type[BasePolicy]] = {"sac": SACActor, "td3": TD3Actor, "ppo": GaussianAgentActor}
+
+
+def _agent_action_dims(policy: BasePolicy) -> dict[str, int]:
+    if isinstance(policy, MAPPOPolicy):
+        return policy.agent_action_dims
+    actor = getattr(policy, "actor", None)
+    if not isinstance(actor, CTDEActor):
+        raise TypeError(f"This model was not trained with a CTDE policy (its policy is {type(policy).__name__})")
+    return actor.agent_action_dims
 
 
 class DecentralizedActors:
@@ -30,8 +39,9 @@ class DecentralizedActors:
     One controller per agent: ``actors(observations) -> actions`` maps a PettingZoo observation dict to an
     action dict, each agent using its local observation only.
 
-    :param actors: each agent's actor network (SB3's SAC or TD3 actor, outputs in [-1, 1])
-    :param action_spaces: each agent's own action space, to which the outputs are rescaled
+    :param actors: each agent's actor network: SB3's SAC or TD3 actor (squashed outputs in [-1, 1], rescaled to the
+        agent's action space) or MAPPO's :class:`~sb3_sera.ctde.policies.GaussianAgentActor` (clipped to it)
+    :param action_spaces: each agent's own action space
     """
 
     def __init__(self, actors: Mapping[str, BasePolicy], action_spaces: Mapping[str, spaces.Box]):
@@ -43,16 +53,22 @@ class DecentralizedActors:
     @classmethod
     def from_model(cls, model: BaseAlgorithm) -> "DecentralizedActors":
         """The controllers of a model trained with a ``"CTDEPolicy"`` (actors copied to the CPU)."""
-        actor = getattr(model.policy, "actor", None)
-        if not isinstance(actor, CTDEActor):
-            raise TypeError(f"{type(model).__name__} was not trained with a CTDE policy: its actor is {type(actor).__name__}")
+        policy = model.policy
         assert isinstance(model.action_space, spaces.Box)
         low, high = model.action_space.low, model.action_space.high
-        actors, action_spaces, start = {}, {}, 0
-        for agent, size in actor.agent_action_dims.items():
-            agent_actor = actor.agent_actor(agent)
-            assert isinstance(agent_actor, BasePolicy)
-            actors[agent] = copy.deepcopy(agent_actor).cpu()
+        actors: dict[str, BasePolicy] = {}
+        action_spaces: dict[str, spaces.Box] = {}
+        start = 0
+        for agent, size in _agent_action_dims(policy).items():
+            if isinstance(policy, MAPPOPolicy):
+                gaussian = copy.deepcopy(policy.mlp_extractor.agent_actor(agent)).cpu()
+                # The joint policy owns the log standard deviations while training: take this agent's share
+                gaussian.log_std.copy_(policy.log_std.detach()[start : start + size].cpu())
+                actors[agent] = gaussian
+            else:
+                agent_actor = cast(CTDEActor, policy.actor).agent_actor(agent)
+                assert isinstance(agent_actor, BasePolicy)
+                actors[agent] = copy.deepcopy(agent_actor).cpu()
             action_spaces[agent] = spaces.Box(low[start : start + size], high[start : start + size], dtype=np.float32)
             start += size
         return cls(actors, action_spaces)
@@ -62,8 +78,10 @@ class DecentralizedActors:
         actor, space = self.actors[agent], self.action_spaces[agent]
         with th.no_grad():
             obs = th.as_tensor(np.asarray(observation, dtype=np.float32)).reshape(1, -1)
-            squashed = actor._predict(obs, deterministic=deterministic).cpu().numpy().reshape(space.shape)
-        return (space.low + 0.5 * (squashed + 1.0) * (space.high - space.low)).astype(space.dtype)
+            action = actor._predict(obs, deterministic=deterministic).cpu().numpy().reshape(space.shape)
+        if actor.squash_output:
+            return (space.low + 0.5 * (action + 1.0) * (space.high - space.low)).astype(space.dtype)
+        return np.clip(action, space.low, space.high).astype(space.dtype)
 
     def __call__(self, observations: Mapping[str, np.ndarray], deterministic: bool = True) -> dict[str, np.ndarray]:
         """Actions of the agents present in ``observations`` (a PettingZoo observation dict)."""

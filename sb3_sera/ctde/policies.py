@@ -9,9 +9,9 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.base_class import BaseAlgorithm
-from stable_baselines3.common.policies import BaseModel, BasePolicy
+from stable_baselines3.common.policies import ActorCriticPolicy, BaseModel, BasePolicy
 from stable_baselines3.common.preprocessing import get_flattened_obs_dim
-from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, FlattenExtractor
+from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, FlattenExtractor, create_mlp
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from stable_baselines3.common.vec_env import VecEnv
 from stable_baselines3.sac.policies import Actor as SACActor
@@ -67,6 +67,18 @@ def check_layout(observation_space: spaces.Space, action_space: spaces.Space, ag
         raise ValueError(f"The joint action space {action_space} does not hold the agents' actions {agent_action_dims}")
 
 
+def _check_shareable(observation_space: spaces.Dict, agent_action_dims: dict[str, int], share: bool) -> None:
+    """Raise ``ValueError`` if one actor is to serve agents whose observation or action spaces differ."""
+    shapes = {agent: (observation_space[agent].shape, size) for agent, size in agent_action_dims.items()}
+    if share and len(set(shapes.values())) > 1:
+        raise ValueError(
+            "share_actor=True needs agents with equal observation and action spaces, got "
+            f"(observation shape, action size) {shapes}; pad the observations and add an agent indicator "
+            "(the task builders' agent_indicator=True, or sb3_sera.ctde.env.with_agent_indicator) or keep one "
+            "actor per agent"
+        )
+
+
 class CTDEActor(BaseModel):
     """
     One SB3 actor per agent, each reading only its agent's observation; the joint action is their concatenation
@@ -94,14 +106,7 @@ class CTDEActor(BaseModel):
         self.agent_action_dims = dict(agent_action_dims)
         self.share_parameters = share_parameters
         boxes = {agent: observation_space[agent] for agent in self.agents}
-        if share_parameters:
-            shapes = {agent: (boxes[agent].shape, agent_action_dims[agent]) for agent in self.agents}
-            if len(set(shapes.values())) > 1:
-                raise ValueError(
-                    "share_actor=True needs agents with equal observation and action spaces, got "
-                    f"(observation shape, action size) {shapes}; pad the observations and add an agent indicator "
-                    "(the task builders' agent_indicator=True) or keep one actor per agent"
-                )
+        _check_shareable(observation_space, agent_action_dims, share_parameters)
         actors: dict[str, nn.Module] = {}
         for agent in self.agents[:1] if share_parameters else self.agents:
             box = boxes[agent]
@@ -195,7 +200,7 @@ class _CTDEMixin:
 
 def is_ctde_policy(policy_class: type) -> bool:
     """Whether ``policy_class`` is one of the CTDE policies (it then needs ``agent_action_dims``)."""
-    return issubclass(policy_class, _CTDEMixin)
+    return issubclass(policy_class, (_CTDEMixin, MAPPOPolicy))
 
 
 class MASACPolicy(_CTDEMixin, SACPolicy):  # type: ignore[misc]
@@ -229,3 +234,186 @@ class MATD3Policy(_CTDEMixin, TD3Policy):  # type: ignore[misc]
     """
 
     agent_actor_class = TD3Actor
+
+
+class ConcatExtractor(BaseFeaturesExtractor):
+    """MAPPO's features: the agents' observations in agent order, then the state, flattened and concatenated."""
+
+    def __init__(self, observation_space: spaces.Dict, agents: list[str]):
+        self.keys = [*agents, STATE_KEY]
+        self.dims = [get_flattened_obs_dim(observation_space[key]) for key in self.keys]
+        super().__init__(observation_space, sum(self.dims))
+
+    def forward(self, observations: dict[str, th.Tensor]) -> th.Tensor:
+        return th.cat([th.flatten(observations[key], start_dim=1) for key in self.keys], dim=1)
+
+
+class GaussianAgentActor(BasePolicy):
+    """
+    One agent's MAPPO actor: a Gaussian whose mean is an MLP of the agent's observation, with a
+    state-independent standard deviation. While training, the joint policy owns the log standard deviations;
+    :class:`~sb3_sera.ctde.execution.DecentralizedActors` copies the agent's share into ``log_std``.
+
+    :param observation_space: the agent's observation space
+    :param action_space: the agent's action space (actions are clipped to it when executed)
+    :param net_arch: hidden layer sizes of the mean network
+    :param activation_fn: activation function
+    :param normalize_images: SB3's image normalization flag (observations are flat vectors here)
+    """
+
+    log_std: th.Tensor
+
+    def __init__(
+        self,
+        observation_space: spaces.Box,
+        action_space: spaces.Box,
+        net_arch: list[int],
+        activation_fn: type[nn.Module] = nn.Tanh,
+        normalize_images: bool = False,
+    ):
+        super().__init__(
+            observation_space,
+            action_space,
+            features_extractor=FlattenExtractor(observation_space),
+            normalize_images=normalize_images,
+        )
+        self.net_arch = net_arch
+        self.activation_fn = activation_fn
+        action_dim = int(np.prod(action_space.shape))
+        self.mu = nn.Sequential(*create_mlp(get_flattened_obs_dim(observation_space), action_dim, net_arch, activation_fn))
+        self.register_buffer("log_std", th.zeros(action_dim))
+
+    def forward(self, obs: th.Tensor, deterministic: bool = False) -> th.Tensor:
+        mean = self.mu(self.extract_features(obs, self.features_extractor))
+        return mean if deterministic else mean + th.exp(self.log_std) * th.randn_like(mean)
+
+    def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        assert isinstance(observation, th.Tensor)
+        return self(observation, deterministic)
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        data.update(net_arch=self.net_arch, activation_fn=self.activation_fn)
+        return data
+
+
+class CTDEMlpExtractor(nn.Module):
+    """
+    MAPPO's networks after :class:`ConcatExtractor`: the actor latent is the per-agent Gaussian means (each from
+    its agent's observation only), the critic latent an MLP of the state.
+
+    :param observation_space: the CTDE Dict observation space
+    :param agent_action_dims: the agents, in joint-action order, and their action sizes
+    :param pi_arch: hidden layers of each agent's mean network
+    :param vf_arch: hidden layers of the centralized value network
+    :param activation_fn: activation function
+    :param share_parameters: one mean network for all agents
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Dict,
+        agent_action_dims: dict[str, int],
+        pi_arch: list[int],
+        vf_arch: list[int],
+        activation_fn: type[nn.Module],
+        share_parameters: bool = False,
+    ):
+        super().__init__()
+        self.agents = list(agent_action_dims)
+        self.share_parameters = share_parameters
+        self.obs_dims = [get_flattened_obs_dim(observation_space[agent]) for agent in self.agents]
+        state_dim = get_flattened_obs_dim(observation_space[STATE_KEY])
+        _check_shareable(observation_space, agent_action_dims, share_parameters)
+        self.agent_actors = nn.ModuleDict(
+            {
+                agent: GaussianAgentActor(
+                    cast(spaces.Box, observation_space[agent]),
+                    spaces.Box(-np.inf, np.inf, (agent_action_dims[agent],), dtype=np.float32),
+                    pi_arch,
+                    activation_fn,
+                )
+                for agent in (self.agents[:1] if share_parameters else self.agents)
+            }
+        )
+        self.value_net = nn.Sequential(*create_mlp(state_dim, -1, vf_arch, activation_fn))
+        self.latent_dim_pi = sum(agent_action_dims.values())
+        self.latent_dim_vf = vf_arch[-1] if vf_arch else state_dim
+
+    def agent_actor(self, agent: str) -> GaussianAgentActor:
+        """The network that acts for ``agent``."""
+        return cast(GaussianAgentActor, self.agent_actors[self.agents[0] if self.share_parameters else agent])
+
+    def forward(self, features: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        return self.forward_actor(features), self.forward_critic(features)
+
+    def forward_actor(self, features: th.Tensor) -> th.Tensor:
+        observations = features[:, : sum(self.obs_dims)].split(self.obs_dims, dim=1)
+        return th.cat([self.agent_actor(agent).mu(obs) for agent, obs in zip(self.agents, observations, strict=True)], dim=1)
+
+    def forward_critic(self, features: th.Tensor) -> th.Tensor:
+        return self.value_net(features[:, sum(self.obs_dims) :])
+
+
+class MAPPOPolicy(ActorCriticPolicy):
+    """
+    PPO's policy for CTDE: per-agent Gaussian actors on local observations and a centralized value V(state).
+
+    Takes SB3's ``ActorCriticPolicy`` arguments (``net_arch`` as ``dict(pi=[...], vf=[...])`` or one list for both,
+    ``activation_fn``, ``log_std_init``, ``ortho_init``, ...) plus ``agent_action_dims`` (the agents, in
+    joint-action order, and their action sizes; filled by the algorithm) and ``share_actor`` (one actor for all).
+    """
+
+    mlp_extractor: CTDEMlpExtractor  # type: ignore[assignment]
+
+    def __init__(
+        self,
+        observation_space: spaces.Dict,
+        action_space: spaces.Box,
+        lr_schedule: Schedule,
+        agent_action_dims: dict[str, int] | None = None,
+        share_actor: bool = False,
+        **kwargs: Any,
+    ):
+        if agent_action_dims is None:
+            raise ValueError("CTDE policies need agent_action_dims (the CTDE algorithms fill it from the CTDEEnv)")
+        check_layout(observation_space, action_space, agent_action_dims)
+        if kwargs.get("use_sde"):
+            raise ValueError("use_sde=True is not supported by the CTDE policies")
+        if kwargs.get("share_features_extractor") is False:
+            raise ValueError("share_features_extractor=False is not supported by MAPPOPolicy")
+        self.agent_action_dims = dict(agent_action_dims)
+        self.share_actor = share_actor
+        kwargs["features_extractor_class"] = ConcatExtractor
+        kwargs["features_extractor_kwargs"] = {"agents": list(agent_action_dims)}
+        super().__init__(observation_space, action_space, lr_schedule, **kwargs)
+
+    def _build_mlp_extractor(self) -> None:
+        if isinstance(self.net_arch, dict):
+            pi_arch, vf_arch = self.net_arch.get("pi", []), self.net_arch.get("vf", [])
+        else:
+            pi_arch = vf_arch = list(self.net_arch)
+        self.mlp_extractor = CTDEMlpExtractor(
+            self.observation_space,  # type: ignore[arg-type]
+            self.agent_action_dims,
+            pi_arch,
+            vf_arch,
+            self.activation_fn,
+            share_parameters=self.share_actor,
+        ).to(self.device)
+
+    def _build(self, lr_schedule: Schedule) -> None:
+        super()._build(lr_schedule)
+        # The agents' mean networks already output the joint mean: no mixing layer after them
+        self.action_net = nn.Identity()
+        if self.ortho_init:
+            for agent in self.mlp_extractor.agents:
+                self.init_weights(self.mlp_extractor.agent_actor(agent).mu[-1], gain=0.01)
+        self.optimizer = self.optimizer_class(self.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs)  # type: ignore[call-arg]
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        for key in ("features_extractor_class", "features_extractor_kwargs"):
+            data.pop(key, None)
+        data.update(agent_action_dims=self.agent_action_dims, share_actor=self.share_actor)
+        return data
