@@ -6,8 +6,9 @@ A cooperative PettingZoo parallel env as one Gymnasium env that SB3 algorithms t
 - action: one ``Box`` holding the agents' actions back to back in ``possible_agents`` order, bounds kept;
 - reward: the team reward (the common value when all agents get the same, else their mean or sum);
   per-agent rewards in ``info["agent_rewards"]``;
-- episode end: time limits are truncation, never termination; an agent that leaves early gets a zero
-  observation and its actions are ignored while the episode goes on as the env says.
+- episode end: time limits are truncation, never termination; an agent that leaves early gets its final
+  observation at the step it leaves, a zero observation after that, and its actions are ignored while the
+  episode goes on as the env says.
 """
 
 import copy

@@ -1,0 +1,148 @@
+"""The CTDE policies and algorithms: decentralized actors, centralized critics, training, save/load, execution."""
+
+import copy
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+
+from sb3_sera import MADDPG, MAPPO, MASAC, MATD3, SERASAC
+from sb3_sera.ctde.env import STATE_KEY
+from sb3_sera.ctde.execution import DecentralizedActors
+
+OFF_POLICY = dict(learning_starts=50, batch_size=32, buffer_size=1_000)
+ALGORITHMS = {
+    SERASAC: OFF_POLICY,
+    MASAC: OFF_POLICY,
+    MATD3: OFF_POLICY,
+    MADDPG: OFF_POLICY,
+    MAPPO: dict(n_steps=64, batch_size=32, n_epochs=2),
+}
+
+
+def batch(observation: dict[str, np.ndarray]) -> dict[str, th.Tensor]:
+    return {key: th.as_tensor(value).unsqueeze(0) for key, value in observation.items()}
+
+
+@pytest.mark.parametrize("algo", ALGORITHMS, ids=lambda algo: algo.__name__)
+def test_train_save_load_predict(algo, tmp_path):
+    model = algo("CTDEPolicy", "sb3_sera/SimpleSpread-v0", seed=0, **ALGORITHMS[algo]).learn(200)
+    observation = model.env.reset()
+    actions, _ = model.predict(observation, deterministic=True)
+    model.save(tmp_path / "model")
+    loaded = algo.load(tmp_path / "model", env=gym.make("sb3_sera/SimpleSpread-v0"))
+    np.testing.assert_array_equal(loaded.predict(observation, deterministic=True)[0], actions)
+    loaded.learn(100, reset_num_timesteps=False)
+
+
+@pytest.mark.parametrize("algo", ALGORITHMS, ids=lambda algo: algo.__name__)
+def test_decentralized_controllers(algo, tmp_path):
+    model = algo("CTDEPolicy", "sb3_sera/Pusher-3p-v0", seed=0, **ALGORITHMS[algo]).learn(64)
+    env = gym.make("sb3_sera/Pusher-3p-v0").unwrapped
+    observation, _ = env.reset(seed=3)
+    joint, _ = model.predict(observation, deterministic=True)
+    controllers = DecentralizedActors.from_model(model)
+    local = {agent: observation[agent] for agent in env.agents}
+    actions = controllers(local)
+    np.testing.assert_allclose(np.concatenate([actions[agent] for agent in env.agents]), joint, atol=1e-5)
+    for agent, action in actions.items():
+        assert env.agent_action_spaces[agent].contains(action)
+    controllers.save(tmp_path / "controllers")
+    saved = [th.load(path, weights_only=False)["state_dict"] for path in (tmp_path / "controllers").glob("*.pth")]
+    assert len(saved) == 3 and not any("critic" in key or "value" in key for state in saved for key in state)
+    reloaded = DecentralizedActors.load(tmp_path / "controllers")
+    for agent, action in reloaded(local).items():
+        np.testing.assert_array_equal(action, actions[agent])
+
+
+@pytest.mark.parametrize("algo", [SERASAC, MASAC, MATD3], ids=lambda algo: algo.__name__)
+def test_actions_are_decentralized_and_critics_centralized(algo):
+    model = algo("CTDEPolicy", "sb3_sera/Pusher-3p-v0", seed=0, **OFF_POLICY)
+    observation, _ = gym.make("sb3_sera/Pusher-3p-v0").unwrapped.reset(seed=0)
+    changed = copy.deepcopy(observation)
+    changed["agent_1"] = changed["agent_1"] + 1.0
+    changed[STATE_KEY] = changed[STATE_KEY] + 1.0
+    with th.no_grad():
+        before = model.actor(batch(observation), deterministic=True)
+        after = model.actor(batch(changed), deterministic=True)
+        # agent_0 acts on its own observation only: actions 0-2; agent_1 owns action 3
+        th.testing.assert_close(before[:, :3], after[:, :3])
+        assert not th.allclose(before[:, 3], after[:, 3])
+        action = th.zeros(1, 7)
+        q_before = th.cat(model.critic(batch(observation), action), dim=1)
+        q_after = th.cat(model.critic(batch(changed), action), dim=1)
+        assert not th.allclose(q_before, q_after)
+        # The critics read the state (and the joint action), not the agents' observations
+        only_agents = copy.deepcopy(changed)
+        only_agents[STATE_KEY] = observation[STATE_KEY]
+        th.testing.assert_close(th.cat(model.critic(batch(only_agents), action), dim=1), q_before)
+
+
+def test_mappo_value_is_centralized_and_actions_decentralized():
+    model = MAPPO("CTDEPolicy", "sb3_sera/Pusher-3p-v0", seed=0, **ALGORITHMS[MAPPO])
+    observation, _ = gym.make("sb3_sera/Pusher-3p-v0").unwrapped.reset(seed=0)
+    changed = copy.deepcopy(observation)
+    changed["agent_2"] = changed["agent_2"] + 1.0
+    with th.no_grad():
+        mean_before = model.policy.get_distribution(batch(observation)).distribution.mean
+        mean_after = model.policy.get_distribution(batch(changed)).distribution.mean
+        th.testing.assert_close(mean_before[:, :4], mean_after[:, :4])
+        assert not th.allclose(mean_before[:, 4:], mean_after[:, 4:])
+        th.testing.assert_close(model.policy.predict_values(batch(changed)), model.policy.predict_values(batch(observation)))
+        changed[STATE_KEY] = changed[STATE_KEY] + 1.0
+        assert not th.allclose(model.policy.predict_values(batch(changed)), model.policy.predict_values(batch(observation)))
+
+
+def test_joint_log_prob_is_the_sum_of_the_agents():
+    model = MASAC("CTDEPolicy", "sb3_sera/Pusher-3p-v0", seed=0, **OFF_POLICY)
+    observation = batch(gym.make("sb3_sera/Pusher-3p-v0").unwrapped.reset(seed=0)[0])
+    th.manual_seed(7)
+    joint_actions, joint_log_prob = model.actor.action_log_prob(observation)
+    th.manual_seed(7)
+    parts = [model.actor.agent_actor(agent).action_log_prob(observation[agent]) for agent in model.actor.agents]
+    th.testing.assert_close(joint_actions, th.cat([action for action, _ in parts], dim=1))
+    th.testing.assert_close(joint_log_prob, sum(log_prob for _, log_prob in parts))
+
+    # MAPPO: the log-probability of a joint action is the sum of per-agent Gaussian log-probabilities
+    mappo = MAPPO("CTDEPolicy", "sb3_sera/Pusher-3p-v0", seed=0, **ALGORITHMS[MAPPO])
+    actions = th.randn(1, 7)
+    _, log_prob, _ = mappo.policy.evaluate_actions(observation, actions)
+    std = th.exp(mappo.policy.log_std)
+    expected = 0.0
+    for agent, part in zip(("agent_0", "agent_1", "agent_2"), (slice(0, 3), slice(3, 4), slice(4, 7)), strict=True):
+        mean = mappo.policy.mlp_extractor.agent_actor(agent).mu(observation[agent])
+        expected = expected + th.distributions.Normal(mean, std[part]).log_prob(actions[:, part]).sum(dim=1)
+    th.testing.assert_close(log_prob, expected)
+
+
+def test_entropy_target_is_minus_the_joint_action_size():
+    for algo in (SERASAC, MASAC):
+        model = algo("CTDEPolicy", "sb3_sera/Pusher-3p-v0", **OFF_POLICY)
+        assert model.target_entropy == -7.0  # 3 + 1 + 3 action dimensions
+
+
+def test_actor_parameter_sharing():
+    shared = MASAC("CTDEPolicy", "sb3_sera/SimpleSpread-v0", seed=0, policy_kwargs=dict(share_actor=True), **OFF_POLICY)
+    separate = MASAC("CTDEPolicy", "sb3_sera/SimpleSpread-v0", seed=0, **OFF_POLICY)
+    n_shared = sum(p.numel() for p in shared.actor.parameters())
+    assert 3 * n_shared == sum(p.numel() for p in separate.actor.parameters())
+    shared.learn(100)
+    # HalfCheetah 6x1 agents observe 9 or 8 values: sharing needs SuperSuit's padding and agent indicator
+    with pytest.raises(ValueError, match="share_actor=True needs agents with equal observation and action spaces"):
+        MASAC("CTDEPolicy", "sb3_sera/HalfCheetah-6x1-v0", policy_kwargs=dict(share_actor=True))
+    model = MAPPO(
+        "CTDEPolicy",
+        gym.make("sb3_sera/HalfCheetah-6x1-v0", agent_indicator=True),
+        policy_kwargs=dict(share_actor=True),
+        **ALGORITHMS[MAPPO],
+    )
+    assert len(model.policy.mlp_extractor.agent_actors) == 1
+    model.learn(64)
+
+
+def test_ctde_policy_needs_a_ctde_env():
+    with pytest.raises(ValueError, match="The CTDE policies need a CTDEEnv"):
+        MASAC("CTDEPolicy", "Pendulum-v1")
+    with pytest.raises(ValueError, match="share_features_extractor=True is not possible"):
+        SERASAC("CTDEPolicy", "sb3_sera/SimpleSpread-v0", policy_kwargs=dict(share_features_extractor=True))

@@ -1,0 +1,165 @@
+"""The CTDE env layer on the paper's five tasks: spaces, episodes, truncation, falls, action layout, bad input."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium import spaces
+from gymnasium.utils.env_checker import check_env as gym_check_env
+from stable_baselines3.common.env_checker import check_env as sb3_check_env
+
+import sb3_sera  # noqa: F401  (registers the ids)
+from sb3_sera.ctde import CTDEEnv, make_mamujoco
+from sb3_sera.ctde.env import STATE_KEY
+
+# id -> (agents, per-agent action size, state size, joint action bounds, episode limit)
+TASKS = {
+    "sb3_sera/HalfCheetah-6x1-v0": ([f"agent_{i}" for i in range(6)], [1] * 6, 17, 1.0, 1000),
+    "sb3_sera/Hopper-3x1-v0": ([f"agent_{i}" for i in range(3)], [1] * 3, 11, 1.0, 1000),
+    "sb3_sera/Pusher-3p-v0": ([f"agent_{i}" for i in range(3)], [3, 1, 3], 23, 2.0, 100),
+    "sb3_sera/Multiwalker-v0": ([f"walker_{i}" for i in range(3)], [4] * 3, 75, 1.0, 500),
+    "sb3_sera/SimpleSpread-v0": ([f"agent_{i}" for i in range(3)], [5] * 3, 54, None, 25),
+}
+
+
+def run_episode(env: gym.Env, seed: int = 0, action_fn=None) -> tuple[int, bool, bool, list[dict]]:
+    observation, _ = env.reset(seed=seed)
+    env.action_space.seed(seed)
+    steps, infos = 0, []
+    while True:
+        action = env.action_space.sample() if action_fn is None else action_fn(observation)
+        observation, reward, terminated, truncated, info = env.step(action)
+        assert env.observation_space.contains(observation)
+        assert np.isfinite(reward)
+        infos.append(info)
+        steps += 1
+        if terminated or truncated:
+            return steps, terminated, truncated, infos
+
+
+@pytest.mark.parametrize("env_id", TASKS)
+def test_task_spaces_and_a_whole_episode(env_id):
+    agents, action_sizes, state_size, bound, limit = TASKS[env_id]
+    env = gym.make(env_id)
+    ctde = env.unwrapped
+    assert isinstance(ctde, CTDEEnv)
+    assert isinstance(env.observation_space, spaces.Dict)
+    assert set(env.observation_space.spaces) == {STATE_KEY, *agents}
+    assert all(space.dtype == np.float32 for space in env.observation_space.spaces.values())
+    assert env.observation_space[STATE_KEY].shape == (state_size,)
+    assert env.action_space.shape == (sum(action_sizes),) and env.action_space.dtype == np.float32
+    if bound is not None:
+        np.testing.assert_array_equal(env.action_space.high, bound)
+        np.testing.assert_array_equal(env.action_space.low, -bound)
+    else:  # MPE: actions in [0, 1]
+        np.testing.assert_array_equal(env.action_space.low, 0.0)
+    assert [ctde.action_slices[a].stop - ctde.action_slices[a].start for a in agents] == action_sizes
+    steps, terminated, truncated, infos = run_episode(env)
+    assert steps <= limit
+    assert terminated or truncated
+    if truncated:
+        assert steps == limit
+    assert set(infos[0]["agent_rewards"]) <= set(agents)
+
+
+def test_env_checkers_pass():
+    for env_id in TASKS:
+        env = gym.make(env_id).unwrapped
+        gym_check_env(env, skip_render_check=True)
+        sb3_check_env(env, warn=False)
+
+
+@pytest.mark.parametrize(("env_id", "kwargs"), [("sb3_sera/Multiwalker-v0", {"max_cycles": 30}), ("sb3_sera/Pusher-3p-v0", {})])
+def test_time_limit_is_truncation(env_id, kwargs):
+    env = gym.make(env_id, **kwargs)
+    # Standing still: no fall, the episode runs to its limit
+    steps, terminated, truncated, _ = run_episode(env, action_fn=lambda obs: np.zeros(env.action_space.shape))
+    assert (steps, terminated, truncated) == (kwargs.get("max_cycles", 100), False, True)
+
+
+def test_falls_are_terminations():
+    # Hopper falls under random actions; multiwalker ends the episode when a walker falls (its default)
+    for env_id in ("sb3_sera/Hopper-3x1-v0", "sb3_sera/Multiwalker-v0"):
+        steps, terminated, truncated, _ = run_episode(gym.make(env_id), seed=1)
+        assert terminated and not truncated, env_id
+
+
+def test_a_fallen_walker_leaves_and_the_others_go_on():
+    env = gym.make("sb3_sera/Multiwalker-v0", terminate_on_fall=False, max_cycles=300)
+    observation, _ = env.reset(seed=1)
+    env.action_space.seed(1)
+    seen_departure = False
+    live_before = ["walker_0", "walker_1", "walker_2"]
+    for _ in range(300):
+        observation, reward, terminated, truncated, info = env.step(env.action_space.sample())
+        # A walker that left at an earlier step has a zero observation (at its last step, its final one)
+        for agent in {"walker_0", "walker_1", "walker_2"} - set(live_before):
+            np.testing.assert_array_equal(observation[agent], 0.0)
+        live_before = info["live_agents"]
+        if 0 < len(live_before) < 3:
+            seen_departure = True
+            # The env can no longer build its state: the wrapper keeps the last one it read
+            assert observation[STATE_KEY].shape == (75,)
+        if terminated or truncated:
+            break
+    assert seen_departure
+
+
+def test_joint_action_layout_follows_mamujoco_mapping():
+    for scenario, conf in (("HalfCheetah", "6x1"), ("Pusher", "3p"), ("Ant", "2x4d")):
+        ctde = make_mamujoco(scenario, conf)
+        ctde.reset(seed=0)
+        joint = ctde.action_space.sample()
+        split = ctde.split_action(joint)
+        for agent, part in ctde.action_slices.items():
+            np.testing.assert_array_equal(split[agent], joint[part])
+        ctde.step(joint)
+        mujoco_ctrl = ctde.env.single_agent_env.unwrapped.data.ctrl
+        np.testing.assert_allclose(mujoco_ctrl, ctde.env.map_local_actions_to_global_action(split), atol=1e-6)
+        # Each agent's slice moves exactly its own actuators
+        for agent in ctde.agents:
+            only = {other: np.zeros_like(action) for other, action in split.items()}
+            only[agent] = np.ones_like(split[agent])
+            moved = np.flatnonzero(ctde.env.map_local_actions_to_global_action(only))
+            assert len(moved) == len(split[agent])
+
+
+def test_team_reward_modes():
+    mean_env = gym.make("sb3_sera/SimpleSpread-v0").unwrapped
+    sum_env = gym.make("sb3_sera/SimpleSpread-v0", reward_mode="sum").unwrapped
+    assert mean_env.team_reward({"a": 1.0, "b": 3.0}) == 2.0
+    assert sum_env.team_reward({"a": 1.0, "b": 3.0}) == 4.0
+    # The same value for every agent is that value, not a sum
+    assert sum_env.team_reward({"a": -2.0, "b": -2.0, "c": -2.0}) == -2.0
+    mean_env.reset(seed=0)
+    _, reward, _, _, info = mean_env.step(mean_env.action_space.sample())
+    assert reward == pytest.approx(np.mean(list(info["agent_rewards"].values())))
+
+
+def test_other_mamujoco_layouts_by_arguments():
+    for scenario, conf, n_agents in (("Ant", "2x4", 2), ("Walker2d", "2x3", 2), ("Swimmer", "2x1", 2)):
+        env = gym.make("sb3_sera/MaMuJoCo-v0", scenario=scenario, agent_conf=conf)
+        assert len(env.unwrapped.agents) == n_agents
+        run_episode(env, action_fn=None) if scenario == "Swimmer" else env.reset(seed=0)
+
+
+def test_bad_input_is_refused_at_construction():
+    from mpe2 import simple_spread_v3
+
+    with pytest.raises(TypeError, match="continuous Box actions .* continuous_actions=True"):
+        gym.make("sb3_sera/SimpleSpread-v0", continuous_actions=False)
+    with pytest.raises(TypeError, match=r"AEC env .* parallel_env\(\.\.\.\)"):
+        CTDEEnv(simple_spread_v3.env(continuous_actions=True))
+    with pytest.raises(ValueError, match="Unknown MaMuJoCo scenario 'Centipede'. Known scenarios and layouts: HalfCheetah"):
+        make_mamujoco("Centipede", "2x3")
+    with pytest.raises(ValueError, match="Unknown agent_conf '5x5' for MaMuJoCo Ant. Known .*Ant: 2x4, 2x4d, 4x2"):
+        make_mamujoco("Ant", "5x5")
+    with pytest.raises(ValueError, match="reward_mode='max' is invalid"):
+        CTDEEnv(simple_spread_v3.parallel_env(continuous_actions=True), reward_mode="max")  # type: ignore[arg-type]
+
+
+def test_agent_indicator_makes_spaces_equal():
+    env = gym.make("sb3_sera/HalfCheetah-6x1-v0", agent_indicator=True)
+    shapes = {env.observation_space[f"agent_{i}"].shape for i in range(6)}
+    assert shapes == {(9 + 6,)}  # padded to the largest observation, plus a one-hot of 6 agents
+    observation, _ = env.reset(seed=0)
+    np.testing.assert_array_equal(observation["agent_2"][-6:], np.eye(6)[2])
