@@ -45,3 +45,16 @@ def test_module_entry_point_help():
     completed = subprocess.run([sys.executable, "-m", "sb3_sera", "compare", "--help"], capture_output=True, text=True)
     assert completed.returncode == 0
     assert "--n-timesteps" in completed.stdout
+
+
+def test_policy_follows_the_task():
+    from stable_baselines3.common.env_util import make_vec_env
+
+    assert compare.policy_for(make_vec_env("Pendulum-v1")) == "MlpPolicy"
+    assert compare.policy_for(make_vec_env("sb3_sera/SimpleSpread-v0")) == "CTDEPolicy"
+
+
+def test_run_folders_follow_rl_zoo3_naming():
+    from pathlib import Path
+
+    assert compare.run_dir("out", "masac", "sb3_sera/HalfCheetah-6x1-v0", 2) == Path("out/masac/sb3_sera-HalfCheetah-6x1-v0_2")

@@ -68,7 +68,9 @@ def test_env_checkers_pass():
         sb3_check_env(env, warn=False)
 
 
-@pytest.mark.parametrize(("env_id", "kwargs"), [("sb3_sera/Multiwalker-v0", {"max_cycles": 30}), ("sb3_sera/Pusher-3p-v0", {})])
+@pytest.mark.parametrize(
+    ("env_id", "kwargs"), [("sb3_sera/Multiwalker-v0", {"max_cycles": 30}), ("sb3_sera/Pusher-3p-v0", {})]
+)
 def test_time_limit_is_truncation(env_id, kwargs):
     env = gym.make(env_id, **kwargs)
     # Standing still: no fall, the episode runs to its limit
@@ -79,7 +81,7 @@ def test_time_limit_is_truncation(env_id, kwargs):
 def test_falls_are_terminations():
     # Hopper falls under random actions; multiwalker ends the episode when a walker falls (its default)
     for env_id in ("sb3_sera/Hopper-3x1-v0", "sb3_sera/Multiwalker-v0"):
-        steps, terminated, truncated, _ = run_episode(gym.make(env_id), seed=1)
+        _steps, terminated, truncated, _ = run_episode(gym.make(env_id), seed=1)
         assert terminated and not truncated, env_id
 
 
@@ -90,7 +92,7 @@ def test_a_fallen_walker_leaves_and_the_others_go_on():
     seen_departure = False
     live_before = ["walker_0", "walker_1", "walker_2"]
     for _ in range(300):
-        observation, reward, terminated, truncated, info = env.step(env.action_space.sample())
+        observation, _reward, terminated, truncated, info = env.step(env.action_space.sample())
         # A walker that left at an earlier step has a zero observation (at its last step, its final one)
         for agent in {"walker_0", "walker_1", "walker_2"} - set(live_before):
             np.testing.assert_array_equal(observation[agent], 0.0)
@@ -145,13 +147,13 @@ def test_other_mamujoco_layouts_by_arguments():
 def test_bad_input_is_refused_at_construction():
     from mpe2 import simple_spread_v3
 
-    with pytest.raises(TypeError, match="continuous Box actions .* continuous_actions=True"):
+    with pytest.raises(TypeError, match=r"continuous Box actions .* continuous_actions=True"):
         gym.make("sb3_sera/SimpleSpread-v0", continuous_actions=False)
     with pytest.raises(TypeError, match=r"AEC env .* parallel_env\(\.\.\.\)"):
         CTDEEnv(simple_spread_v3.env(continuous_actions=True))
-    with pytest.raises(ValueError, match="Unknown MaMuJoCo scenario 'Centipede'. Known scenarios and layouts: HalfCheetah"):
+    with pytest.raises(ValueError, match=r"Unknown MaMuJoCo scenario 'Centipede'\. Known scenarios and layouts: HalfCheetah"):
         make_mamujoco("Centipede", "2x3")
-    with pytest.raises(ValueError, match="Unknown agent_conf '5x5' for MaMuJoCo Ant. Known .*Ant: 2x4, 2x4d, 4x2"):
+    with pytest.raises(ValueError, match=r"Unknown agent_conf '5x5' for MaMuJoCo Ant\. Known .*Ant: 2x4, 2x4d, 4x2"):
         make_mamujoco("Ant", "5x5")
     with pytest.raises(ValueError, match="reward_mode='max' is invalid"):
         CTDEEnv(simple_spread_v3.parallel_env(continuous_actions=True), reward_mode="max")  # type: ignore[arg-type]

@@ -52,7 +52,8 @@ def fill_agent_layout(model: BaseAlgorithm) -> None:
     if is_ctde_policy(model.policy_class) and "agent_action_dims" not in policy_kwargs:
         if model.env is None:
             raise ValueError("A CTDE policy needs an env, or policy_kwargs=dict(agent_action_dims=...)")
-        policy_kwargs["agent_action_dims"] = agent_action_dims_of(model.env)
+        # A new dict: the user's policy_kwargs may serve other models too
+        model.policy_kwargs = {**policy_kwargs, "agent_action_dims": agent_action_dims_of(model.env)}
 
 
 def check_layout(observation_space: spaces.Space, action_space: spaces.Space, agent_action_dims: dict[str, int]) -> None:
@@ -65,6 +66,21 @@ def check_layout(observation_space: spaces.Space, action_space: spaces.Space, ag
     total = sum(agent_action_dims.values())
     if not isinstance(action_space, spaces.Box) or action_space.shape != (total,):
         raise ValueError(f"The joint action space {action_space} does not hold the agents' actions {agent_action_dims}")
+
+
+def check_policy_arguments(
+    observation_space: spaces.Space,
+    action_space: spaces.Space,
+    agent_action_dims: dict[str, int] | None,
+    kwargs: dict[str, Any],
+) -> dict[str, int]:
+    """The checks every CTDE policy makes of its arguments; returns a copy of ``agent_action_dims``."""
+    if agent_action_dims is None:
+        raise ValueError("CTDE policies need agent_action_dims (the CTDE algorithms fill it from the CTDEEnv)")
+    check_layout(observation_space, action_space, agent_action_dims)
+    if kwargs.get("use_sde"):
+        raise ValueError("use_sde=True is not supported by the CTDE policies")
+    return dict(agent_action_dims)
 
 
 def _check_shareable(observation_space: spaces.Dict, agent_action_dims: dict[str, int], share: bool) -> None:
@@ -167,17 +183,13 @@ class _CTDEMixin:
         share_actor: bool = False,
         **kwargs: Any,
     ):
-        if agent_action_dims is None:
-            raise ValueError("CTDE policies need agent_action_dims (the CTDE algorithms fill it from the CTDEEnv)")
-        check_layout(observation_space, action_space, agent_action_dims)
+        agent_action_dims = check_policy_arguments(observation_space, action_space, agent_action_dims, kwargs)
         if kwargs.get("share_features_extractor"):
             raise ValueError(
                 "share_features_extractor=True is not possible: the actors read local observations, the critics the state"
             )
-        if kwargs.get("use_sde"):
-            raise ValueError("use_sde=True is not supported by the CTDE policies")
         kwargs.setdefault("features_extractor_class", StateExtractor)
-        self.agent_action_dims = dict(agent_action_dims)
+        self.agent_action_dims = agent_action_dims
         self.share_actor = share_actor
         super().__init__(observation_space, action_space, lr_schedule, **kwargs)  # type: ignore[call-arg]
 
@@ -375,14 +387,10 @@ class MAPPOPolicy(ActorCriticPolicy):
         share_actor: bool = False,
         **kwargs: Any,
     ):
-        if agent_action_dims is None:
-            raise ValueError("CTDE policies need agent_action_dims (the CTDE algorithms fill it from the CTDEEnv)")
-        check_layout(observation_space, action_space, agent_action_dims)
-        if kwargs.get("use_sde"):
-            raise ValueError("use_sde=True is not supported by the CTDE policies")
+        agent_action_dims = check_policy_arguments(observation_space, action_space, agent_action_dims, kwargs)
         if kwargs.get("share_features_extractor") is False:
             raise ValueError("share_features_extractor=False is not supported by MAPPOPolicy")
-        self.agent_action_dims = dict(agent_action_dims)
+        self.agent_action_dims = agent_action_dims
         self.share_actor = share_actor
         kwargs["features_extractor_class"] = ConcatExtractor
         kwargs["features_extractor_kwargs"] = {"agents": list(agent_action_dims)}

@@ -4,11 +4,18 @@ import argparse
 from collections.abc import Sequence
 from pathlib import Path
 
+from rl_zoo3.utils import StoreDict
+
 from sb3_sera.experiments import compare
 
 
 def _compare(args: argparse.Namespace) -> None:
+    hyperparams = None
+    if args.hyperparams:
+        defaults = compare.DEFAULT_HYPERPARAMS if args.env == compare.DEFAULT_ENV else {}
+        hyperparams = {algo: {**defaults.get(algo, {}), **args.hyperparams} for algo in args.algos}
     results = compare.run_comparison(
+        hyperparams=hyperparams,
         algos=args.algos,
         env_id=args.env,
         seeds=args.seeds,
@@ -20,11 +27,12 @@ def _compare(args: argparse.Namespace) -> None:
     )
     table = compare.summary_table(results)
     out = Path(args.out)
-    plot = out / f"{args.env}_learning_curves.png"
+    name = compare.env_name(args.env)
+    plot = out / f"{name}_learning_curves.png"
     compare.plot_learning_curves(results, plot)
-    (out / f"{args.env}_summary.md").write_text(f"{args.env}, {args.n_timesteps} steps, seeds {list(args.seeds)}\n\n{table}\n")
+    (out / f"{name}_summary.md").write_text(f"{args.env}, {args.n_timesteps} steps, seeds {list(args.seeds)}\n\n{table}\n")
     print(f"\n{args.env}, {args.n_timesteps} steps, seeds {list(args.seeds)}\n{table}")
-    print(f"\nLearning curves: {plot}\nRun folders: {out}/<algo>/{args.env}_<seed>/")
+    print(f"\nLearning curves: {plot}\nRun folders: {out}/<algo>/{name}_<seed>/")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -42,7 +50,17 @@ def build_parser() -> argparse.ArgumentParser:
     comp.add_argument("--eval-freq", type=int, default=1000, help="environment steps between evaluations")
     comp.add_argument("--eval-episodes", type=int, default=5)
     comp.add_argument("--n-jobs", type=int, default=None, help="runs at a time (default: one per core)")
-    comp.add_argument("--out", default="logs/compare", help="root of the run folders")
+    comp.add_argument(
+        "--out", default="logs/compare", help="root of the run folders (a finished run found there is not run again)"
+    )
+    comp.add_argument(
+        "-params",
+        "--hyperparams",
+        nargs="+",
+        action=StoreDict,
+        default=None,
+        help="hyperparameters for every algorithm, as rl-zoo3's -params: learning_starts:10000 batch_size:256",
+    )
     comp.set_defaults(func=_compare)
     return parser
 

@@ -1,8 +1,9 @@
 """
 Train several algorithms on one task for several seeds, then tabulate and plot the results.
 
-Each run writes a folder in rl-zoo3's layout, ``<out>/<algo>/<env_id>_<seed>/``, holding the ``evaluations.npz``
-of SB3's ``EvalCallback``, the training ``0.monitor.csv``, the final model ``<env_id>.zip`` and ``result.json``
+Each run writes a folder in rl-zoo3's layout, ``<out>/<algo>/<env_name>_<seed>/`` (the env id with
+slashes as dashes), holding the ``evaluations.npz`` of SB3's ``EvalCallback``, the training ``0.monitor.csv``,
+the final model ``<env_name>.zip`` and ``result.json``
 (wall time and final evaluation). A run whose ``result.json`` exists is not run again, so an interrupted
 comparison resumes where it stopped.
 """
@@ -20,11 +21,15 @@ from typing import Any
 
 import numpy as np
 import torch as th
+from gymnasium import spaces
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import EvalCallback
 from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.vec_env import VecEnv
 from tqdm import tqdm
 
+from sb3_sera.ctde.algorithms import MADDPG, MAPPO, MASAC, MATD3
+from sb3_sera.ctde.env import STATE_KEY
 from sb3_sera.sera import SERASAC
 
 #: Default quick comparison: a task that SAC solves in a few thousand steps.
@@ -32,8 +37,8 @@ DEFAULT_ENV = "Pendulum-v1"
 DEFAULT_ALGOS = ("serasac", "sac")
 DEFAULT_SEEDS = (0, 1)
 DEFAULT_TIMESTEPS = 6_000
-#: Hyperparameters of the quick comparison: rl-zoo3's SAC entry for Pendulum-v1 (learning rate 1e-3),
-#: for every algorithm; SERASAC's critics use the same rate as their largest step size.
+#: Hyperparameters of the quick comparison on the default task: rl-zoo3's SAC entry for Pendulum-v1 (learning
+#: rate 1e-3), for every algorithm; SERASAC's critics use the same rate as their largest step size.
 DEFAULT_HYPERPARAMS: dict[str, dict[str, Any]] = {
     "sac": {"learning_rate": 1e-3},
     "serasac": {"learning_rate": 1e-3, "critic_lr_max": 1e-3},
@@ -44,7 +49,13 @@ def algorithm_classes() -> dict[str, type[BaseAlgorithm]]:
     """rl-zoo3's algorithms by lower-case name, with this package's added."""
     from rl_zoo3.utils import ALGOS
 
-    return {**ALGOS, "serasac": SERASAC}
+    return {**ALGOS, "serasac": SERASAC, "masac": MASAC, "matd3": MATD3, "maddpg": MADDPG, "mappo": MAPPO}
+
+
+def policy_for(env: VecEnv) -> str:
+    """``"CTDEPolicy"`` for a multi-agent CTDE task (Dict observation with a state), else ``"MlpPolicy"``."""
+    space = env.observation_space
+    return "CTDEPolicy" if isinstance(space, spaces.Dict) and STATE_KEY in space.spaces else "MlpPolicy"
 
 
 @dataclass
@@ -63,9 +74,14 @@ class RunResult:
     returns: list[float] = field(default_factory=list)
 
 
+def env_name(env_id: str) -> str:
+    """``env_id`` as rl-zoo3 names folders and files: slashes become dashes (``sb3_sera-HalfCheetah-6x1-v0``)."""
+    return env_id.replace("/", "-")
+
+
 def run_dir(out_dir: str | Path, algo: str, env_id: str, seed: int) -> Path:
     """The folder of one run, in rl-zoo3's layout."""
-    return Path(out_dir) / algo / f"{env_id}_{seed}"
+    return Path(out_dir) / algo / f"{env_name(env_id)}_{seed}"
 
 
 def train_one(
@@ -100,12 +116,12 @@ def train_one(
     folder.mkdir(parents=True, exist_ok=True)
     env = make_vec_env(env_id, n_envs=1, seed=seed, monitor_dir=str(folder))
     eval_env = make_vec_env(env_id, n_envs=1, seed=seed + 10_000)
-    model = algorithm_classes()[algo]("MlpPolicy", env, seed=seed, verbose=0, **(hyperparams or {}))
+    model = algorithm_classes()[algo](policy_for(env), env, seed=seed, verbose=0, **(hyperparams or {}))
     callback = EvalCallback(eval_env, eval_freq=eval_freq, n_eval_episodes=n_eval_episodes, log_path=str(folder), verbose=0)
     start = time.perf_counter()
     model.learn(n_timesteps, callback=callback)
     wall_time = time.perf_counter() - start
-    model.save(folder / env_id)
+    model.save(folder / env_name(env_id))
     evaluations = np.load(folder / "evaluations.npz")
     returns = evaluations["results"].mean(axis=1)
     result = RunResult(
@@ -148,7 +164,8 @@ def run_comparison(
         raise ValueError(f"Unknown algorithm(s) {unknown}: expected names among {sorted(known)}")
     if eval_freq > n_timesteps:
         raise ValueError(f"eval_freq={eval_freq} exceeds n_timesteps={n_timesteps}: no evaluation would run")
-    params = DEFAULT_HYPERPARAMS if hyperparams is None else hyperparams
+    if hyperparams is None:
+        hyperparams = DEFAULT_HYPERPARAMS if env_id == DEFAULT_ENV else {}
     jobs = [(algo, seed) for algo in algos for seed in seeds]
     n_jobs = min(n_jobs or os.cpu_count() or 1, len(jobs))
     threads = 1 if n_jobs > 1 else th.get_num_threads()
@@ -165,7 +182,7 @@ def run_comparison(
                 seed,
                 n_timesteps,
                 out_dir,
-                params.get(algo, {}),
+                hyperparams.get(algo, {}),
                 eval_freq,
                 n_eval_episodes,
                 threads,
