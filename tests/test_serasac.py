@@ -61,6 +61,10 @@ def test_user_archs_and_homogeneous_net_arch():
     model = SERASAC("MlpPolicy", ENV_ID, policy_kwargs=dict(n_critics=3, net_arch=[32, 32]), **SMALL)
     assert all(linear_shapes(q) == [(4, 32), (32, 32), (32, 1)] for q in model.critic.q_networks)
     assert linear_shapes(model.actor.latent_pi) == [(3, 32), (32, 32)]
+    # An actor-only net_arch keeps the Table 4 critics
+    model = SERASAC("MlpPolicy", ENV_ID, policy_kwargs=dict(net_arch=dict(pi=[16])), **SMALL)
+    assert linear_shapes(model.actor.latent_pi) == [(3, 16)]
+    assert [linear_shapes(q)[0][1] for q in model.critic.q_networks] == [256, 128, 256, 512, 128]
 
 
 def test_one_parameter_group_per_critic():

@@ -1,12 +1,13 @@
 """The ``sb3-sera`` command line (also ``python -m sb3_sera``)."""
 
 import argparse
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 
 from rl_zoo3.utils import StoreDict
 
-from sb3_sera.experiments import compare
+from sb3_sera.experiments import compare, zoo
 
 
 def _compare(args: argparse.Namespace) -> None:
@@ -62,10 +63,18 @@ def build_parser() -> argparse.ArgumentParser:
         help="hyperparameters for every algorithm, as rl-zoo3's -params: learning_starts:10000 batch_size:256",
     )
     comp.set_defaults(func=_compare)
+    for command in zoo.ZOO_COMMANDS:
+        # Listed for --help; main() hands their arguments to rl-zoo3 untouched
+        commands.add_parser(command, add_help=False, help=f"rl-zoo3's {command} with sb3-sera's algorithms (zoo flags)")
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> None:
     """Entry point of ``sb3-sera``."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] in zoo.ZOO_COMMANDS:
+        # rl-zoo3 parses these arguments itself: every zoo flag keeps working
+        zoo.run_zoo(argv[0], argv[1:])
+        return
     args = build_parser().parse_args(argv)
     args.func(args)

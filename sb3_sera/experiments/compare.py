@@ -28,9 +28,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import VecEnv
 from tqdm import tqdm
 
-from sb3_sera.ctde.algorithms import MADDPG, MAPPO, MASAC, MATD3
 from sb3_sera.ctde.env import STATE_KEY
-from sb3_sera.sera import SERASAC
 
 #: Default quick comparison: a task that SAC solves in a few thousand steps.
 DEFAULT_ENV = "Pendulum-v1"
@@ -49,7 +47,9 @@ def algorithm_classes() -> dict[str, type[BaseAlgorithm]]:
     """rl-zoo3's algorithms by lower-case name, with this package's added."""
     from rl_zoo3.utils import ALGOS
 
-    return {**ALGOS, "serasac": SERASAC, "masac": MASAC, "matd3": MATD3, "maddpg": MADDPG, "mappo": MAPPO}
+    from sb3_sera.experiments.zoo import ZOO_ALGOS
+
+    return {**ALGOS, **ZOO_ALGOS}
 
 
 def policy_for(env: VecEnv) -> str:

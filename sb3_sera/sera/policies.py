@@ -164,9 +164,10 @@ class SERAPolicy(SACPolicy):
     """
     SAC's policy with a heterogeneous ensemble of critics trained by one optimizer, one parameter group per critic.
 
-    Critic architectures: ``critic_archs`` when given; else, when ``net_arch`` is given, its critic part for every
-    critic (a homogeneous ensemble); else the paper's Table 4, critic ``i`` using ``CRITIC_ARCHS[i % 5]``.
-    The actor uses ``net_arch``'s actor part, ``[256, 256]`` by default.
+    Critic architectures: ``critic_archs`` when given; else, when ``net_arch`` has a critic part (a list, or a
+    dict with ``"qf"``), that part for every critic (a homogeneous ensemble); else the paper's Table 4, critic
+    ``i`` using ``CRITIC_ARCHS[i % 5]``. The actor uses ``net_arch``'s actor part (``dict(pi=[...])`` alone sets
+    only the actor), ``[256, 256]`` by default.
 
     :param observation_space: Observation space
     :param action_space: Action space
@@ -211,11 +212,14 @@ class SERAPolicy(SACPolicy):
         critic_archs: list[list[int]] | None = None,
         share_features_extractor: bool = False,
     ):
+        if isinstance(net_arch, dict) and "qf" not in net_arch:
+            # Only the actor is specified: the critics keep their own architectures
+            net_arch = {**net_arch, "qf": []}
+            critic_part = None
+        else:
+            critic_part = None if net_arch is None else list(get_actor_critic_arch(net_arch)[1])
         if critic_archs is None:
-            if net_arch is None:
-                critic_archs = default_critic_archs(n_critics)
-            else:
-                critic_archs = [list(get_actor_critic_arch(net_arch)[1]) for _ in range(n_critics)]
+            critic_archs = default_critic_archs(n_critics) if critic_part is None else [critic_part] * n_critics
         critic_archs = [list(arch) for arch in critic_archs]
         check_critic_archs(critic_archs, n_critics)
         if optimizer_kwargs is None and optimizer_class in (th.optim.Adam, th.optim.AdamW):

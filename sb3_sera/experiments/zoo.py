@@ -1,0 +1,134 @@
+"""
+rl-zoo3 bridge. rl-zoo3 has no plugin mechanism, so this module adds the package's algorithms to the zoo's
+algorithm table (``rl_zoo3.utils.ALGOS``) and to its hyperparameter sampler and converter tables (for
+``-optimize``), then runs the zoo's own ``train``, ``enjoy`` and ``record_video`` with this repository's
+``hyperparams/<algo>.yml`` as the default ``--conf-file``.
+"""
+
+import runpy
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from stable_baselines3.common.base_class import BaseAlgorithm
+
+from sb3_sera.ctde.algorithms import MADDPG, MAPPO, MASAC, MATD3
+from sb3_sera.sera import SERASAC
+
+#: The package's algorithms under their zoo names
+ZOO_ALGOS: dict[str, type[BaseAlgorithm]] = {
+    "serasac": SERASAC,
+    "masac": MASAC,
+    "matd3": MATD3,
+    "maddpg": MADDPG,
+    "mappo": MAPPO,
+}
+#: One YAML file per algorithm, keyed by env id (rl-zoo3's format)
+HYPERPARAMS_DIR = Path(__file__).resolve().parents[2] / "hyperparams"
+#: The zoo commands the CLI passes through
+ZOO_COMMANDS = ("train", "enjoy", "record-video", "optimize")
+
+
+def _actor_only(hyperparams: dict[str, Any]) -> dict[str, Any]:
+    """Apply the zoo's network size to the actor only: SERASAC's critics keep the Table 4 architectures."""
+    policy_kwargs = hyperparams.setdefault("policy_kwargs", {})
+    if isinstance(policy_kwargs.get("net_arch"), list):
+        policy_kwargs["net_arch"] = {"pi": policy_kwargs["net_arch"]}
+    return hyperparams
+
+
+def sample_serasac_params(trial: Any, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
+    """rl-zoo3's SAC search space (network size for the actor only) plus SERA's own knobs."""
+    from rl_zoo3.hyperparams_opt import sample_sac_params
+
+    hyperparams = _actor_only(sample_sac_params(trial, n_actions, n_envs, additional_args))
+    hyperparams.update(
+        sera_alpha=trial.suggest_float("sera_alpha", 0.0, 1.0),
+        sera_temperature=trial.suggest_float("sera_temperature", 0.1, 10.0, log=True),
+        critic_lr_max=trial.suggest_float("critic_lr_max", 1e-4, 2e-3, log=True),
+        disagreement_coef=trial.suggest_float("disagreement_coef", 0.0, 0.1),
+    )
+    return hyperparams
+
+
+def convert_serasac_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
+    """A stored trial's parameters as SERASAC's: rl-zoo3's off-policy conversion, network size for the actor only."""
+    from rl_zoo3.hyperparams_opt import convert_offpolicy_params
+
+    return _actor_only(convert_offpolicy_params(sampled_params))
+
+
+def register_with_zoo() -> None:
+    """Add the package's algorithms, samplers and converters to rl-zoo3's tables (idempotent)."""
+    from rl_zoo3 import hyperparams_opt, utils
+
+    utils.ALGOS.update(ZOO_ALGOS)
+    samplers, converters = hyperparams_opt.HYPERPARAMS_SAMPLER, hyperparams_opt.HYPERPARAMS_CONVERTER
+    samplers.update(
+        serasac=sample_serasac_params,
+        masac=samplers["sac"],
+        matd3=samplers["td3"],
+        maddpg=samplers["ddpg"],
+        mappo=samplers["ppo"],
+    )
+    converters.update(
+        serasac=convert_serasac_params,
+        masac=converters["sac"],
+        matd3=converters["td3"],
+        maddpg=converters["ddpg"],
+        mappo=converters["ppo"],
+    )
+
+
+def _flag_value(argv: Sequence[str], *names: str) -> str | None:
+    for index, arg in enumerate(argv):
+        if arg in names and index + 1 < len(argv):
+            return argv[index + 1]
+        for name in names:
+            if arg.startswith(f"{name}="):
+                return arg.split("=", 1)[1]
+    return None
+
+
+def zoo_argv(command: str, argv: Sequence[str]) -> list[str]:
+    """
+    The zoo's arguments for ``command``: ``optimize`` is ``train -optimize``, and ``train``/``optimize`` read this
+    repository's ``hyperparams/<algo>.yml`` unless ``--conf-file`` is given.
+    """
+    args = list(argv)
+    if command not in ZOO_COMMANDS:
+        raise ValueError(f"Unknown zoo command {command!r}: expected one of {ZOO_COMMANDS}")
+    if command == "optimize" and "-optimize" not in args and "--optimize-hyperparameters" not in args:
+        args.append("-optimize")
+    if command in ("train", "optimize") and _flag_value(args, "-conf", "--conf-file") is None:
+        algo = _flag_value(args, "--algo") or "ppo"
+        config = HYPERPARAMS_DIR / f"{algo}.yml"
+        if config.exists():
+            args += ["--conf-file", str(config)]
+    return args
+
+
+def run_zoo(command: str, argv: Sequence[str]) -> None:
+    """Run rl-zoo3's ``command`` (train, enjoy, record-video, optimize) with the package's algorithms."""
+    register_with_zoo()
+    from rl_zoo3.enjoy import enjoy
+    from rl_zoo3.train import train
+
+    def record_video() -> None:
+        # rl-zoo3 keeps this one in its module's __main__ block
+        runpy.run_module("rl_zoo3.record_video", run_name="__main__")
+
+    entry_points: dict[str, Callable[[], None]] = {
+        "train": train,
+        "optimize": train,
+        "enjoy": enjoy,
+        "record-video": record_video,
+    }
+    args = zoo_argv(command, argv)
+    saved = sys.argv
+    sys.argv = [f"sb3-sera {command}", *args]
+    try:
+        entry_points[command]()
+    finally:
+        sys.argv = saved

@@ -1,0 +1,103 @@
+"""rl-zoo3 bridge: the zoo's own train / enjoy / optimize with this package's algorithms and hyperparameter files."""
+
+import inspect
+import subprocess
+import sys
+
+import numpy as np
+import optuna
+import pytest
+import yaml
+
+from sb3_sera.experiments.zoo import HYPERPARAMS_DIR, ZOO_ALGOS, register_with_zoo, zoo_argv
+
+PAPER_TASKS = {
+    "HalfCheetah-v5",
+    "Ant-v5",
+    "Humanoid-v5",
+    "sb3_sera/HalfCheetah-6x1-v0",
+    "sb3_sera/Hopper-3x1-v0",
+    "sb3_sera/Pusher-3p-v0",
+    "sb3_sera/Multiwalker-v0",
+    "sb3_sera/SimpleSpread-v0",
+}
+# Keys rl-zoo3 reads itself rather than passing to the algorithm
+ZOO_KEYS = {"n_timesteps", "policy", "n_envs", "noise_type", "noise_std", "normalize", "env_wrapper", "frame_stack"}
+
+
+def sb3_sera(*args: str) -> subprocess.CompletedProcess:
+    completed = subprocess.run([sys.executable, "-m", "sb3_sera", *args], capture_output=True, text=True, timeout=600)
+    assert completed.returncode == 0, completed.stderr[-3000:]
+    return completed
+
+
+@pytest.mark.parametrize("algo", ZOO_ALGOS)
+def test_hyperparameter_files_cover_the_paper_tasks(algo):
+    entries = yaml.load((HYPERPARAMS_DIR / f"{algo}.yml").read_text(), Loader=yaml.UnsafeLoader)
+    assert set(entries) >= PAPER_TASKS | {"Pendulum-v1"}
+    accepted = set(inspect.signature(ZOO_ALGOS[algo]).parameters)
+    for env_id, entry in entries.items():
+        unknown = set(entry) - ZOO_KEYS - accepted
+        assert not unknown, (env_id, unknown)
+        expected_policy = "CTDEPolicy" if env_id.startswith("sb3_sera/") else "MlpPolicy"
+        assert entry["policy"] == expected_policy, env_id
+        if env_id in PAPER_TASKS:
+            assert entry["n_timesteps"] == 300_000
+            assert entry["gamma"] == 0.99 and entry["learning_rate"] == 3e-4
+
+
+def test_zoo_tables_and_arguments():
+    register_with_zoo()
+    from rl_zoo3 import hyperparams_opt, utils
+
+    for algo in ZOO_ALGOS:
+        assert utils.ALGOS[algo] is ZOO_ALGOS[algo]
+        assert algo in hyperparams_opt.HYPERPARAMS_SAMPLER and algo in hyperparams_opt.HYPERPARAMS_CONVERTER
+    assert zoo_argv("train", ["--algo", "masac"])[-2:] == ["--conf-file", str(HYPERPARAMS_DIR / "masac.yml")]
+    assert zoo_argv("train", ["--algo", "masac", "-conf", "mine.yml"]) == ["--algo", "masac", "-conf", "mine.yml"]
+    assert "-optimize" in zoo_argv("optimize", ["--algo", "serasac"])
+    with pytest.raises(ValueError, match="Unknown zoo command 'fly'"):
+        zoo_argv("fly", [])
+
+
+def test_serasac_sampler_keeps_table_4_critics():
+    register_with_zoo()
+    from rl_zoo3 import hyperparams_opt
+
+    trial = optuna.create_study().ask()
+    params = hyperparams_opt.HYPERPARAMS_SAMPLER["serasac"](trial, 1, 1, {"using_her_replay_buffer": False})
+    assert set(params["policy_kwargs"]["net_arch"]) == {"pi"}
+    assert 0.0 <= params["sera_alpha"] <= 1.0 and params["sera_temperature"] > 0
+    # A stored trial converts the same way
+    stored = hyperparams_opt.HYPERPARAMS_CONVERTER["serasac"](dict(trial.params))
+    assert stored["policy_kwargs"] == params["policy_kwargs"] and stored["sera_alpha"] == params["sera_alpha"]
+
+
+def test_train_then_enjoy_a_zoo_run(tmp_path):
+    folder = str(tmp_path)
+    sb3_sera("train", "--algo", "serasac", "--env", "Pendulum-v1", "-n", "300", "-f", folder, "--seed", "0")
+    sb3_sera("train", "--algo", "masac", "--env", "sb3_sera/SimpleSpread-v0", "-n", "200", "-f", folder, "--seed", "0")
+    run = tmp_path / "serasac" / "Pendulum-v1_1"
+    assert (run / "Pendulum-v1.zip").exists() and (run / "0.monitor.csv").exists()
+    # The zoo saved the hyperparameters it read from this repository's file
+    assert "critic_lr_max" in (run / "Pendulum-v1" / "config.yml").read_text()
+    enjoyed = sb3_sera("enjoy", "--algo", "serasac", "--env", "Pendulum-v1", "-f", folder, "--exp-id", "1", "-n", "200")
+    assert "Mean reward" in enjoyed.stdout
+    assert (tmp_path / "masac" / "sb3_sera-SimpleSpread-v0_1" / "sb3_sera-SimpleSpread-v0.zip").exists()
+
+
+def test_two_workers_tune_one_study(tmp_path):
+    storage = f"sqlite:///{tmp_path / 'study.db'}"
+    args = ["optimize", "--algo", "serasac", "--env", "Pendulum-v1", "-n", "200", "--n-trials", "1", "--n-jobs", "1"]
+    args += ["--storage", storage, "--study-name", "shared", "--sampler", "random", "--pruner", "none"]
+    args += ["--n-evaluations", "1", "--eval-episodes", "1", "-f", str(tmp_path), "-params", "learning_starts:50"]
+    workers = [
+        subprocess.Popen([sys.executable, "-m", "sb3_sera", *args], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        for _ in range(2)
+    ]
+    for worker in workers:
+        _, stderr = worker.communicate(timeout=600)
+        assert worker.returncode == 0, stderr.decode()[-3000:]
+    trials = optuna.load_study(study_name="shared", storage=storage).trials
+    assert len(trials) == 2
+    assert all(trial.state == optuna.trial.TrialState.COMPLETE and np.isfinite(trial.value) for trial in trials)
