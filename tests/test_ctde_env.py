@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 from gymnasium import spaces
 from gymnasium.utils.env_checker import check_env as gym_check_env
+from pettingzoo.utils.env import ParallelEnv
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
 import sb3_sera  # noqa: F401  (registers the ids)
@@ -165,3 +166,56 @@ def test_agent_indicator_makes_spaces_equal():
     assert shapes == {(9 + 6,)}  # padded to the largest observation, plus a one-hot of 6 agents
     observation, _ = env.reset(seed=0)
     np.testing.assert_array_equal(observation["agent_2"][-6:], np.eye(6)[2])
+
+
+class TwoPoints(ParallelEnv):
+    """A tiny cooperative parallel env without state(): two points move towards the origin for 5 steps."""
+
+    metadata = {"name": "two_points"}  # noqa: RUF012
+
+    def __init__(self):
+        self.possible_agents = ["a", "b"]
+        self.agents: list[str] = []
+
+    def observation_space(self, agent):
+        return spaces.Box(-10.0, 10.0, (2,), dtype=np.float64)
+
+    def action_space(self, agent):
+        return spaces.Box(-1.0, 1.0, (2,) if agent == "a" else (1,), dtype=np.float32)
+
+    def reset(self, seed=None, options=None):
+        self.agents, self.t = list(self.possible_agents), 0
+        self.position = {"a": np.array([1.0, 2.0]), "b": np.array([-3.0, 0.5])}
+        return {agent: self.position[agent].copy() for agent in self.agents}, {agent: {} for agent in self.agents}
+
+    def step(self, actions):
+        self.t += 1
+        self.position["a"] += actions["a"]
+        self.position["b"][0] += actions["b"][0]
+        rewards = {agent: -float(np.abs(self.position[agent]).sum()) for agent in self.agents}
+        truncations = {agent: self.t >= 5 for agent in self.agents}
+        terminations = {agent: False for agent in self.agents}
+        observations = {agent: self.position[agent].copy() for agent in self.agents}
+        if self.t >= 5:
+            self.agents = []
+        return observations, rewards, terminations, truncations, {agent: {} for agent in observations}
+
+
+def test_any_parallel_env_without_state():
+    env = CTDEEnv(TwoPoints(), reward_mode="sum")
+    assert not env.has_state
+    # The state is the agents' observations, concatenated in agent order, with their bounds
+    assert env.observation_space[STATE_KEY].shape == (4,)
+    np.testing.assert_array_equal(env.observation_space[STATE_KEY].high, 10.0)
+    observation, _ = env.reset(seed=0)
+    np.testing.assert_array_equal(observation[STATE_KEY], [1.0, 2.0, -3.0, 0.5])
+    observation, reward, terminated, truncated, info = env.step(np.array([0.5, -0.5, 1.0], dtype=np.float32))
+    np.testing.assert_array_equal(observation["a"], [1.5, 1.5])
+    np.testing.assert_array_equal(observation["b"], [-2.0, 0.5])
+    assert reward == -(3.0 + 2.5) and info["agent_rewards"] == {"a": -3.0, "b": -2.5}
+    steps = 1
+    while not (terminated or truncated):
+        _, _, terminated, truncated, _ = env.step(np.zeros(3, dtype=np.float32))
+        steps += 1
+    assert (steps, terminated, truncated) == (5, False, True)
+    sb3_check_env(env, warn=False)

@@ -92,17 +92,14 @@ class CTDEEnv(gym.Env):
             high=np.concatenate([action_spaces[a].high.ravel() for a in self.agents]).astype(np.float32),
             dtype=np.float32,
         )
-        self.has_state = self._has_state()
+        self.has_state = callable(getattr(env, "state", None))
         state_space = self._state_space()
         self.observation_space = spaces.Dict({STATE_KEY: state_space, **observation_spaces})
         self.render_mode = getattr(env, "render_mode", None)
-        self.metadata = {**getattr(env, "metadata", {}), "render_modes": getattr(env, "metadata", {}).get("render_modes", [])}
+        self.metadata = {"render_modes": [], **getattr(env, "metadata", {})}
         self._steps = 0
         self._last_state = np.zeros(state_space.shape, dtype=np.float32)
         self._state_readable = True
-
-    def _has_state(self) -> bool:
-        return callable(getattr(self.env, "state", None))
 
     def _state_space(self) -> spaces.Box:
         if self.has_state:
