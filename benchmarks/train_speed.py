@@ -14,12 +14,11 @@ SERASAC's (the wall-time cost of SERASAC per gradient step, in units of SAC's).
 """
 
 import argparse
-import time
 
-import numpy as np
 import torch as th
 from stable_baselines3 import SAC
 from stable_baselines3.common.base_class import BaseAlgorithm
+from timing import interleaved_rates, median_iqr
 
 from sb3_sera import SERASAC
 
@@ -32,15 +31,6 @@ def _build(name: str, env_id: str, seed: int, learning_starts: int, sera_kwargs:
     # Fill the replay buffer with random transitions (no gradient step before learning_starts)
     model.learn(learning_starts)
     return model
-
-
-def _time_block(model: BaseAlgorithm, mode: str, block_steps: int, batch_size: int) -> float:
-    start = time.perf_counter()
-    if mode == "train":
-        model.train(gradient_steps=block_steps, batch_size=batch_size)  # type: ignore[attr-defined]
-    else:
-        model.learn(block_steps, reset_num_timesteps=False)
-    return block_steps / (time.perf_counter() - start)
 
 
 def main() -> None:
@@ -62,17 +52,11 @@ def main() -> None:
     print(f"{args.env}, batch {args.batch_size}, {args.threads} torch thread(s), torch {th.__version__}")
     print(f"{'mode':<6} {'algorithm':<9} {'steps/s (median)':>17} {'IQR':>15}  ratio (SAC rate / rate)")
     for mode in args.modes:
-        rates: dict[str, list[float]] = {name: [] for name in names}
-        for block in range(args.warmup_blocks + args.blocks):
-            for name in names if block % 2 == 0 else reversed(names):
-                rate = _time_block(models[name], mode, args.block_steps, args.batch_size)
-                if block >= args.warmup_blocks:
-                    rates[name].append(rate)
-        medians = {name: float(np.median(values)) for name, values in rates.items()}
-        for name in names:
-            low, high = np.percentile(rates[name], [25, 75])
-            ratio = medians["SAC"] / medians[name]
-            print(f"{mode:<6} {name:<9} {medians[name]:>17.1f} {f'{low:.1f}-{high:.1f}':>15}  {ratio:.2f}x")
+        rates = interleaved_rates(models, mode, args.blocks, args.block_steps, args.batch_size, args.warmup_blocks)
+        stats = {name: median_iqr(values) for name, values in rates.items()}
+        for name, (median, low, high) in stats.items():
+            ratio = stats["SAC"][0] / median
+            print(f"{mode:<6} {name:<9} {median:>17.1f} {f'{low:.1f}-{high:.1f}':>15}  {ratio:.2f}x")
 
 
 if __name__ == "__main__":

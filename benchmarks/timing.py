@@ -1,0 +1,40 @@
+"""Interleaved timing of SB3 models, shared by the benchmark scripts."""
+
+import time
+from collections.abc import Mapping
+
+import numpy as np
+from stable_baselines3.common.base_class import BaseAlgorithm
+
+
+def time_block(model: BaseAlgorithm, mode: str, block_steps: int, batch_size: int) -> float:
+    """Gradient steps per second of one block: ``train`` (gradient steps only) or ``learn`` (env steps too)."""
+    start = time.perf_counter()
+    if mode == "train":
+        model.train(gradient_steps=block_steps, batch_size=batch_size)  # type: ignore[attr-defined]
+    else:
+        model.learn(block_steps, reset_num_timesteps=False)
+    return block_steps / (time.perf_counter() - start)
+
+
+def interleaved_rates(
+    models: Mapping[str, BaseAlgorithm], mode: str, blocks: int, block_steps: int, batch_size: int, warmup_blocks: int = 2
+) -> dict[str, list[float]]:
+    """
+    Rates of each model over ``blocks`` timed blocks, the models taking turns (in alternating order) so that
+    machine noise hits them alike; the first ``warmup_blocks`` rounds are not kept.
+    """
+    names = list(models)
+    rates: dict[str, list[float]] = {name: [] for name in names}
+    for block in range(warmup_blocks + blocks):
+        for name in names if block % 2 == 0 else reversed(names):
+            rate = time_block(models[name], mode, block_steps, batch_size)
+            if block >= warmup_blocks:
+                rates[name].append(rate)
+    return rates
+
+
+def median_iqr(values: list[float]) -> tuple[float, float, float]:
+    """Median and interquartile range."""
+    low, median, high = np.percentile(values, [25, 50, 75])
+    return float(median), float(low), float(high)
