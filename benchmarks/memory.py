@@ -67,7 +67,7 @@ def main() -> None:
         process.start()
         rows.append(queue.get())
         process.join()
-    print(f"{args.env}, replay buffer of {args.buffer_size} transitions (env dtypes), after {args.gradient_steps} gradient steps")
+    print(f"{args.env}, replay buffer of {args.buffer_size} transitions (env dtypes), {args.gradient_steps} gradient steps")
     print(f"{'algorithm':<9} {'buffer MiB':>11} {'params MiB':>11} {'Adam state MiB':>15} {'peak RSS MiB':>13}")
     for row in rows:
         print(
