@@ -29,6 +29,7 @@ from stable_baselines3.common.vec_env import VecEnv
 from tqdm import tqdm
 
 from sb3_sera.ctde.env import STATE_KEY
+from sb3_sera.experiments.stats import normalized_auc, welch_p_value
 
 #: Default quick comparison: a task that SAC solves in a few thousand steps.
 DEFAULT_ENV = "Pendulum-v1"
@@ -196,17 +197,30 @@ def run_comparison(
 
 
 def summary_table(results: Sequence[RunResult]) -> str:
-    """A Markdown table: final evaluation return (mean +- std over seeds) and wall time per algorithm."""
+    """
+    A Markdown table per algorithm: final evaluation return (mean ± std over seeds), normalized AUC of the
+    learning curve (mean over seeds), Welch's t-test p-value of the final returns against the first algorithm's,
+    and wall time.
+    """
+    algos = list(dict.fromkeys(result.algo for result in results))
+    finals = {algo: [run.final_return for run in results if run.algo == algo] for algo in algos}
+    reference = algos[0]
     lines = [
-        "| algorithm | seeds | final return (mean ± std) | wall time s (mean) | steps/s (mean) |",
-        "|---|---|---|---|---|",
+        f"| algorithm | seeds | final return (mean ± std) | normalized AUC | p vs {reference} (Welch) "
+        "| wall time s (mean) | steps/s (mean) |",
+        "|---|---|---|---|---|---|---|",
     ]
-    for algo in dict.fromkeys(result.algo for result in results):
+    for algo in algos:
         runs = [result for result in results if result.algo == algo]
-        finals = np.array([run.final_return for run in runs])
+        values = np.array(finals[algo])
+        auc = np.mean([normalized_auc(run.timesteps, run.returns) for run in runs])
+        p_value = None if algo == reference else welch_p_value(finals[algo], finals[reference])
         walls = np.array([run.wall_time_s for run in runs])
         speed = np.mean([run.n_timesteps / run.wall_time_s for run in runs])
-        lines.append(f"| {algo} | {len(runs)} | {finals.mean():.1f} ± {finals.std():.1f} | {walls.mean():.1f} | {speed:.1f} |")
+        lines.append(
+            f"| {algo} | {len(runs)} | {values.mean():.1f} ± {values.std():.1f} | {auc:.1f} "
+            f"| {'' if p_value is None else f'{p_value:.3f}'} | {walls.mean():.1f} | {speed:.1f} |"
+        )
     return "\n".join(lines)
 
 
