@@ -146,3 +146,8 @@ def test_ctde_policy_needs_a_ctde_env():
         MASAC("CTDEPolicy", "Pendulum-v1")
     with pytest.raises(ValueError, match="share_features_extractor=True is not possible"):
         SERASAC("CTDEPolicy", "sb3_sera/SimpleSpread-v0", policy_kwargs=dict(share_features_extractor=True))
+
+
+def test_controllers_need_a_ctde_model():
+    with pytest.raises(TypeError, match="not trained with a CTDE policy"):
+        DecentralizedActors.from_model(SERASAC("MlpPolicy", "Pendulum-v1", **OFF_POLICY))
