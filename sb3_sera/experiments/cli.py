@@ -7,7 +7,7 @@ from pathlib import Path
 
 from rl_zoo3.utils import StoreDict
 
-from sb3_sera.experiments import compare, zoo
+from sb3_sera.experiments import bench, compare, zoo
 
 
 def _compare(args: argparse.Namespace) -> None:
@@ -34,6 +34,13 @@ def _compare(args: argparse.Namespace) -> None:
     (out / f"{name}_summary.md").write_text(f"{args.env}, {args.n_timesteps} steps, seeds {list(args.seeds)}\n\n{table}\n")
     print(f"\n{args.env}, {args.n_timesteps} steps, seeds {list(args.seeds)}\n{table}")
     print(f"\nLearning curves: {plot}\nRun folders: {out}/<algo>/{name}_<seed>/")
+
+
+def _bench(args: argparse.Namespace) -> None:
+    by_task = bench.run_grid(args.grid, args.out, n_jobs=args.n_jobs, ray_address=args.ray_address)
+    for task, results in by_task.items():
+        print(f"\n{task}\n{compare.summary_table(results)}")
+    print(f"\nRun folders and summaries: {args.out}")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -63,6 +70,17 @@ def build_parser() -> argparse.ArgumentParser:
         help="hyperparameters for every algorithm, as rl-zoo3's -params: learning_starts:10000 batch_size:256",
     )
     comp.set_defaults(func=_compare)
+    grid = commands.add_parser(
+        "bench",
+        help="run a grid of variants x tasks x seeds from a YAML file, locally or on Ray; resumes where it stopped",
+        description=bench.__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    grid.add_argument("grid", help="the grid's YAML file")
+    grid.add_argument("--out", default="logs/bench", help="root of the run folders")
+    grid.add_argument("--n-jobs", type=int, default=None, help="local runs at a time (default: one per core)")
+    grid.add_argument("--ray-address", default=None, help="run on this Ray cluster ('auto': the one started here)")
+    grid.set_defaults(func=_bench)
     for command in zoo.ZOO_COMMANDS:
         # Listed for --help; main() hands their arguments to rl-zoo3 untouched
         commands.add_parser(command, add_help=False, help=f"rl-zoo3's {command} with sb3-sera's algorithms (zoo flags)")

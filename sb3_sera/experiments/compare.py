@@ -85,51 +85,52 @@ def run_dir(out_dir: str | Path, algo: str, env_id: str, seed: int) -> Path:
     return Path(out_dir) / algo / f"{env_name(env_id)}_{seed}"
 
 
-def train_one(
-    algo: str,
-    env_id: str,
-    seed: int,
-    n_timesteps: int,
-    out_dir: str,
-    hyperparams: dict[str, Any] | None = None,
-    eval_freq: int = 1000,
-    n_eval_episodes: int = 5,
-    threads: int = 1,
-) -> RunResult:
-    """
-    Train one algorithm on one seed and evaluate it every ``eval_freq`` steps; skip if already done.
+@dataclass
+class RunSpec:
+    """One training run: an algorithm (under a label, e.g. a variant's name) on one task and seed."""
 
-    :param algo: lower-case algorithm name (see :func:`algorithm_classes`)
-    :param env_id: Gymnasium id
-    :param seed: random seed
-    :param n_timesteps: training budget in environment steps
+    label: str
+    algo: str
+    env_id: str
+    seed: int
+    n_timesteps: int
+    hyperparams: dict[str, Any] = field(default_factory=dict)
+    eval_freq: int = 1000
+    n_eval_episodes: int = 5
+
+
+def train_one(spec: RunSpec, out_dir: str, threads: int = 1) -> RunResult:
+    """
+    Train one run, evaluating every ``spec.eval_freq`` steps, in ``run_dir(out_dir, spec.label, ...)``; a run whose
+    ``result.json`` exists is not run again.
+
+    :param spec: what to train
     :param out_dir: root of the run folders
-    :param hyperparams: keyword arguments of the algorithm
-    :param eval_freq: environment steps between evaluations
-    :param n_eval_episodes: episodes per evaluation
     :param threads: torch threads for this run (1 when several runs share the cores)
     """
-    folder = run_dir(out_dir, algo, env_id, seed)
+    folder = run_dir(out_dir, spec.label, spec.env_id, spec.seed)
     result_file = folder / "result.json"
     if result_file.exists():
         return RunResult(**json.loads(result_file.read_text()))
     th.set_num_threads(threads)
     folder.mkdir(parents=True, exist_ok=True)
-    env = make_vec_env(env_id, n_envs=1, seed=seed, monitor_dir=str(folder))
-    eval_env = make_vec_env(env_id, n_envs=1, seed=seed + 10_000)
-    model = algorithm_classes()[algo](policy_for(env), env, seed=seed, verbose=0, **(hyperparams or {}))
-    callback = EvalCallback(eval_env, eval_freq=eval_freq, n_eval_episodes=n_eval_episodes, log_path=str(folder), verbose=0)
+    env = make_vec_env(spec.env_id, n_envs=1, seed=spec.seed, monitor_dir=str(folder))
+    eval_env = make_vec_env(spec.env_id, n_envs=1, seed=spec.seed + 10_000)
+    model = algorithm_classes()[spec.algo](policy_for(env), env, seed=spec.seed, verbose=0, **spec.hyperparams)
+    callback = EvalCallback(
+        eval_env, eval_freq=spec.eval_freq, n_eval_episodes=spec.n_eval_episodes, log_path=str(folder), verbose=0
+    )
     start = time.perf_counter()
-    model.learn(n_timesteps, callback=callback)
+    model.learn(spec.n_timesteps, callback=callback)
     wall_time = time.perf_counter() - start
-    model.save(folder / env_name(env_id))
+    model.save(folder / env_name(spec.env_id))
     evaluations = np.load(folder / "evaluations.npz")
     returns = evaluations["results"].mean(axis=1)
     result = RunResult(
-        algo=algo,
-        env_id=env_id,
-        seed=seed,
-        n_timesteps=n_timesteps,
+        algo=spec.label,
+        env_id=spec.env_id,
+        seed=spec.seed,
+        n_timesteps=spec.n_timesteps,
         wall_time_s=wall_time,
         final_return=float(returns[-1]),
         timesteps=[int(t) for t in evaluations["timesteps"]],
@@ -140,6 +141,56 @@ def train_one(
     env.close()
     eval_env.close()
     return result
+
+
+def execute(
+    specs: Sequence[RunSpec],
+    out_dir: str,
+    n_jobs: int | None = None,
+    ray_address: str | None = None,
+    progress_bar: bool = True,
+) -> list[RunResult]:
+    """
+    Run every spec, one torch thread per run when several run at once: on a local process pool of ``n_jobs``
+    workers (default: one per core), or as Ray tasks of one CPU each on the cluster at ``ray_address``
+    (``"auto"``: the one ``ray start`` made on this machine). Finished runs are read back, not run again.
+
+    :return: the results, in the order of ``specs``
+    """
+    if ray_address is not None:
+        return _execute_on_ray(specs, out_dir, ray_address, progress_bar)
+    n_jobs = min(n_jobs or os.cpu_count() or 1, len(specs))
+    threads = 1 if n_jobs > 1 else th.get_num_threads()
+    results: dict[int, RunResult] = {}
+    with (
+        ProcessPoolExecutor(max_workers=n_jobs, mp_context=get_context("spawn")) as pool,
+        tqdm(total=len(specs), desc="runs", disable=not progress_bar) as bar,
+    ):
+        futures = {pool.submit(train_one, spec, out_dir, threads): index for index, spec in enumerate(specs)}
+        for future in as_completed(futures):
+            results[futures[future]] = future.result()
+            bar.update()
+    return [results[index] for index in range(len(specs))]
+
+
+def _execute_on_ray(specs: Sequence[RunSpec], out_dir: str, address: str, progress_bar: bool) -> list[RunResult]:
+    try:
+        import ray
+    except ImportError as error:
+        raise ImportError("--ray-address needs Ray: pip install 'sb3-sera[distributed]'") from error
+    ray.init(address=address, ignore_reinit_error=True, log_to_driver=False)
+    remote_train: Any = ray.remote(num_cpus=1)(train_one)
+    # Workers may start elsewhere: give them an absolute folder
+    folder = str(Path(out_dir).resolve())
+    pending = {remote_train.remote(spec, folder, 1): index for index, spec in enumerate(specs)}
+    results: dict[int, RunResult] = {}
+    with tqdm(total=len(specs), desc="runs (ray)", disable=not progress_bar) as bar:
+        while pending:
+            done, _ = ray.wait(list(pending), num_returns=1)
+            for ref in done:
+                results[pending.pop(ref)] = ray.get(ref)
+                bar.update()
+    return [results[index] for index in range(len(specs))]
 
 
 def run_comparison(
@@ -167,33 +218,12 @@ def run_comparison(
         raise ValueError(f"eval_freq={eval_freq} exceeds n_timesteps={n_timesteps}: no evaluation would run")
     if hyperparams is None:
         hyperparams = DEFAULT_HYPERPARAMS if env_id == DEFAULT_ENV else {}
-    jobs = [(algo, seed) for algo in algos for seed in seeds]
-    n_jobs = min(n_jobs or os.cpu_count() or 1, len(jobs))
-    threads = 1 if n_jobs > 1 else th.get_num_threads()
-    results: dict[tuple[str, int], RunResult] = {}
-    with (
-        ProcessPoolExecutor(max_workers=n_jobs, mp_context=get_context("spawn")) as pool,
-        tqdm(total=len(jobs), desc=f"{env_id} runs", disable=not progress_bar) as bar,
-    ):
-        futures = {
-            pool.submit(
-                train_one,
-                algo,
-                env_id,
-                seed,
-                n_timesteps,
-                out_dir,
-                hyperparams.get(algo, {}),
-                eval_freq,
-                n_eval_episodes,
-                threads,
-            ): (algo, seed)
-            for algo, seed in jobs
-        }
-        for future in as_completed(futures):
-            results[futures[future]] = future.result()
-            bar.update()
-    return [results[job] for job in jobs]
+    specs = [
+        RunSpec(algo, algo, env_id, seed, n_timesteps, dict(hyperparams.get(algo, {})), eval_freq, n_eval_episodes)
+        for algo in algos
+        for seed in seeds
+    ]
+    return execute(specs, out_dir, n_jobs=n_jobs, progress_bar=progress_bar)
 
 
 def summary_table(results: Sequence[RunResult]) -> str:
