@@ -75,8 +75,11 @@ def test_serasac_sampler_keeps_table_4_critics():
 
 def test_train_then_enjoy_a_zoo_run(tmp_path):
     folder = str(tmp_path)
-    sb3_sera("train", "--algo", "serasac", "--env", "Pendulum-v1", "-n", "300", "-f", folder, "--seed", "0")
-    sb3_sera("train", "--algo", "masac", "--env", "sb3_sera/SimpleSpread-v0", "-n", "200", "-f", folder, "--seed", "0")
+    evaluate = ["--eval-freq", "100", "--eval-episodes", "2"]
+    sb3_sera("train", "--algo", "serasac", "--env", "Pendulum-v1", "-n", "300", "-f", folder, "--seed", "0", *evaluate)
+    sb3_sera(
+        "train", "--algo", "masac", "--env", "sb3_sera/SimpleSpread-v0", "-n", "200", "-f", folder, "--seed", "0", *evaluate
+    )
     run = tmp_path / "serasac" / "Pendulum-v1_1"
     assert (run / "Pendulum-v1.zip").exists() and (run / "0.monitor.csv").exists()
     # The zoo saved the hyperparameters it read from this repository's file
@@ -84,6 +87,9 @@ def test_train_then_enjoy_a_zoo_run(tmp_path):
     enjoyed = sb3_sera("enjoy", "--algo", "serasac", "--env", "Pendulum-v1", "-f", folder, "--exp-id", "1", "-n", "200")
     assert "Mean reward" in enjoyed.stdout
     assert (tmp_path / "masac" / "sb3_sera-SimpleSpread-v0_1" / "sb3_sera-SimpleSpread-v0.zip").exists()
+    # The report reads the zoo's run folders too
+    reported = sb3_sera("report", folder, "--out", str(tmp_path / "report"))
+    assert "### Pendulum-v1" in reported.stdout and "### sb3_sera/SimpleSpread-v0" in reported.stdout
 
 
 def test_two_workers_tune_one_study(tmp_path):

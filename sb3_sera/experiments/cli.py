@@ -7,7 +7,7 @@ from pathlib import Path
 
 from rl_zoo3.utils import StoreDict
 
-from sb3_sera.experiments import bench, compare, zoo
+from sb3_sera.experiments import bench, compare, report, zoo
 
 
 def _compare(args: argparse.Namespace) -> None:
@@ -41,6 +41,12 @@ def _bench(args: argparse.Namespace) -> None:
     for task, results in by_task.items():
         print(f"\n{task}\n{compare.summary_table(results)}")
     print(f"\nRun folders and summaries: {args.out}")
+
+
+def _report(args: argparse.Namespace) -> None:
+    path = report.write_report(args.roots, args.out, tensorboard_dirs=args.tensorboard_log or ())
+    print(path.read_text())
+    print(f"\nReport: {path}")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -81,6 +87,16 @@ def build_parser() -> argparse.ArgumentParser:
     grid.add_argument("--n-jobs", type=int, default=None, help="local runs at a time (default: one per core)")
     grid.add_argument("--ray-address", default=None, help="run on this Ray cluster ('auto': the one started here)")
     grid.set_defaults(func=_bench)
+    rep = commands.add_parser(
+        "report",
+        help="a Markdown report (paper tables, Welch tests, AUC, figures) from rl-zoo3-style run folders",
+        description=report.__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    rep.add_argument("roots", nargs="+", help="folders holding <algo>/<env>_<id>/evaluations.npz")
+    rep.add_argument("--tensorboard-log", nargs="+", default=None, help="TensorBoard folders of the same runs")
+    rep.add_argument("--out", default="logs/report", help="folder for report.md and its figures")
+    rep.set_defaults(func=_report)
     for command in zoo.ZOO_COMMANDS:
         # Listed for --help; main() hands their arguments to rl-zoo3 untouched
         commands.add_parser(command, add_help=False, help=f"rl-zoo3's {command} with sb3-sera's algorithms (zoo flags)")
