@@ -94,9 +94,15 @@ def test_train_then_enjoy_a_zoo_run(tmp_path):
 
 def test_two_workers_tune_one_study(tmp_path):
     storage = f"sqlite:///{tmp_path / 'study.db'}"
-    args = ["optimize", "--algo", "serasac", "--env", "Pendulum-v1", "-n", "200", "--n-trials", "1", "--n-jobs", "1"]
+    # A fixed sampler seed keeps the sampled batch size and gradient steps (hence the cost) the same on every run
+    args = ["optimize", "--algo", "serasac", "--env", "Pendulum-v1", "-n", "120", "--n-trials", "1", "--n-jobs", "1"]
+    # One torch thread per worker: two workers with torch's default (one thread per core) oversubscribe the cores
+    args += ["--seed", "3", "--num-threads", "1"]
     args += ["--storage", storage, "--study-name", "shared", "--sampler", "random", "--pruner", "none"]
     args += ["--n-evaluations", "1", "--eval-episodes", "1", "-f", str(tmp_path), "-params", "learning_starts:50"]
+    # The storage is created once, before the workers start (two workers creating one SQLite schema at the same
+    # moment race each other in Optuna); each worker then loads the study
+    optuna.create_study(study_name="shared", storage=storage, direction="maximize")
     workers = [
         subprocess.Popen([sys.executable, "-m", "sb3_sera", *args], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
         for _ in range(2)
