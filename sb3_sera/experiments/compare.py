@@ -226,29 +226,52 @@ def run_comparison(
     return execute(specs, out_dir, n_jobs=n_jobs, progress_bar=progress_bar)
 
 
+@dataclass
+class AlgorithmSummary:
+    """One algorithm's runs on one task, summarized."""
+
+    #: Final evaluation return of each run
+    finals: np.ndarray
+    #: Normalized AUC of the learning curve, averaged over runs
+    auc: float
+    #: Welch's t-test p-value of the final returns against the reference algorithm's (None for the reference,
+    #: or with fewer than two runs on a side)
+    p_value: float | None
+
+
+def summarize(results: Sequence[RunResult], reference: str) -> dict[str, AlgorithmSummary]:
+    """Per algorithm (in order of first appearance): final returns, mean normalized AUC, Welch p vs ``reference``."""
+    algos = list(dict.fromkeys(result.algo for result in results))
+    finals = {algo: [run.final_return for run in results if run.algo == algo] for algo in algos}
+    return {
+        algo: AlgorithmSummary(
+            finals=np.array(finals[algo]),
+            auc=float(np.mean([normalized_auc(run.timesteps, run.returns) for run in results if run.algo == algo])),
+            p_value=None if algo == reference or reference not in finals else welch_p_value(finals[algo], finals[reference]),
+        )
+        for algo in algos
+    }
+
+
 def summary_table(results: Sequence[RunResult]) -> str:
     """
     A Markdown table per algorithm: final evaluation return (mean ± std over seeds), normalized AUC of the
     learning curve (mean over seeds), Welch's t-test p-value of the final returns against the first algorithm's,
     and wall time.
     """
-    algos = list(dict.fromkeys(result.algo for result in results))
-    finals = {algo: [run.final_return for run in results if run.algo == algo] for algo in algos}
-    reference = algos[0]
+    reference = results[0].algo
     lines = [
         f"| algorithm | seeds | final return (mean ± std) | normalized AUC | p vs {reference} (Welch) "
         "| wall time s (mean) | steps/s (mean) |",
         "|---|---|---|---|---|---|---|",
     ]
-    for algo in algos:
+    for algo, summary in summarize(results, reference).items():
         runs = [result for result in results if result.algo == algo]
-        values = np.array(finals[algo])
-        auc = np.mean([normalized_auc(run.timesteps, run.returns) for run in runs])
-        p_value = None if algo == reference else welch_p_value(finals[algo], finals[reference])
         walls = np.array([run.wall_time_s for run in runs])
         speed = np.mean([run.n_timesteps / run.wall_time_s for run in runs])
+        p_value = summary.p_value
         lines.append(
-            f"| {algo} | {len(runs)} | {values.mean():.1f} ± {values.std():.1f} | {auc:.1f} "
+            f"| {algo} | {len(runs)} | {summary.finals.mean():.1f} ± {summary.finals.std():.1f} | {summary.auc:.1f} "
             f"| {'' if p_value is None else f'{p_value:.3f}'} | {walls.mean():.1f} | {speed:.1f} |"
         )
     return "\n".join(lines)

@@ -16,8 +16,8 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 
-from sb3_sera.experiments.compare import RunResult, env_name, plot_learning_curves
-from sb3_sera.experiments.stats import improvement_percent, normalized_auc, welch_p_value
+from sb3_sera.experiments.compare import RunResult, env_name, plot_learning_curves, summarize
+from sb3_sera.experiments.stats import improvement_percent
 
 #: Paper Table 1 (multi-agent, 300K steps) and Table 2 (single-agent): (mean, std) of the team return
 PAPER_RESULTS: dict[str, dict[str, tuple[float, float]]] = {
@@ -87,8 +87,8 @@ def load_runs(roots: Sequence[str | Path]) -> list[RunResult]:
 def task_table(env_id: str, runs: Sequence[RunResult]) -> str:
     """One task's rows: ours beside the paper's, normalized AUC, Welch p and SERASAC's improvement."""
     paper = PAPER_RESULTS.get(env_id, {})
-    algos = sorted({run.algo for run in runs}, key=lambda algo: (algo != REFERENCE, algo))
-    finals = {algo: [run.final_return for run in runs if run.algo == algo] for algo in algos}
+    summaries = summarize(runs, REFERENCE)
+    algos = sorted(summaries, key=lambda algo: (algo != REFERENCE, algo))
     budget = max(run.n_timesteps for run in runs)
     lines = [
         f"### {env_id} (our runs: {budget:,} steps)",
@@ -98,17 +98,15 @@ def task_table(env_id: str, runs: Sequence[RunResult]) -> str:
         "|---|---|---|---|---|---|---|",
     ]
     for algo in algos:
-        values = np.array(finals[algo])
-        auc = np.mean([normalized_auc(run.timesteps, run.returns) for run in runs if run.algo == algo])
+        summary = summaries[algo]
+        values, p_value = summary.finals, summary.p_value
         paper_value = paper.get(PAPER_NAMES.get(algo, ""))
         paper_cell = "" if paper_value is None else f"{paper_value[0]:g} ± {paper_value[1]:g}"
-        p_value, improvement = None, None
-        if algo != REFERENCE and REFERENCE in finals:
-            p_value = welch_p_value(finals[REFERENCE], finals[algo])
-            if values.mean() != 0:
-                improvement = improvement_percent(float(np.mean(finals[REFERENCE])), float(values.mean()))
+        improvement = None
+        if algo != REFERENCE and REFERENCE in summaries and values.mean() != 0:
+            improvement = improvement_percent(float(summaries[REFERENCE].finals.mean()), float(values.mean()))
         lines.append(
-            f"| {algo} | {len(values)} | {values.mean():.1f} ± {values.std():.1f} | {paper_cell} | {auc:.1f} "
+            f"| {algo} | {len(values)} | {values.mean():.1f} ± {values.std():.1f} | {paper_cell} | {summary.auc:.1f} "
             f"| {'' if p_value is None else f'{p_value:.3f}'} | {'' if improvement is None else f'{improvement:+.1f}'} |"
         )
     others = [name for name in paper if name not in {PAPER_NAMES.get(algo) for algo in algos}]
