@@ -219,3 +219,8 @@ def test_any_parallel_env_without_state():
         steps += 1
     assert (steps, terminated, truncated) == (5, False, True)
     sb3_check_env(env, warn=False)
+    # Prepared for actor sharing: a one-hot agent indicator after the observation (SuperSuit writes the
+    # observation space's upper bound, 10 here, as the "hot" value)
+    shared = CTDEEnv(TwoPoints(), agent_indicator=True)
+    observation, _ = shared.reset(seed=0)
+    np.testing.assert_array_equal(observation["b"], [-3.0, 0.5, 0.0, 10.0])

@@ -36,6 +36,8 @@ class CTDEEnv(gym.Env):
         Leave ``None`` for envs that report their time limit as truncation.
     :param is_terminal: with ``time_limit``, tells whether the env's last state is also a real terminal state
         (called on ``env`` when the limit is reached); ``None``: never
+    :param agent_indicator: pad the agents' observations to one shape and append a one-hot agent indicator
+        (SuperSuit, see :func:`with_agent_indicator`), so that one actor can serve all agents (``share_actor=True``)
     """
 
     def __init__(
@@ -44,6 +46,7 @@ class CTDEEnv(gym.Env):
         reward_mode: RewardMode = "mean",
         time_limit: int | None = None,
         is_terminal: Callable[[ParallelEnv], bool] | None = None,
+        agent_indicator: bool = False,
     ):
         if isinstance(env, AECEnv):
             raise TypeError(
@@ -52,6 +55,8 @@ class CTDEEnv(gym.Env):
             )
         if not isinstance(env, ParallelEnv):
             raise TypeError(f"CTDEEnv needs a PettingZoo ParallelEnv, got {type(env).__name__}")
+        if agent_indicator:
+            env = with_agent_indicator(env)
         if reward_mode not in ("mean", "sum"):
             raise ValueError(f"reward_mode={reward_mode!r} is invalid: expected one of 'mean', 'sum'")
         if time_limit is not None and (isinstance(time_limit, bool) or not isinstance(time_limit, int) or time_limit < 1):

@@ -90,7 +90,7 @@ def _check_shareable(observation_space: spaces.Dict, agent_action_dims: dict[str
         raise ValueError(
             "share_actor=True needs agents with equal observation and action spaces, got "
             f"(observation shape, action size) {shapes}; pad the observations and add an agent indicator "
-            "(the task builders' agent_indicator=True, or sb3_sera.ctde.env.with_agent_indicator) or keep one "
+            "(agent_indicator=True in gym.make of the sb3_sera ids or in CTDEEnv) or keep one "
             "actor per agent"
         )
 

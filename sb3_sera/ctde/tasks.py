@@ -21,7 +21,7 @@ from typing import Any
 
 import gymnasium as gym
 
-from sb3_sera.ctde.env import CTDEEnv, RewardMode, with_agent_indicator
+from sb3_sera.ctde.env import CTDEEnv, RewardMode
 
 #: MaMuJoCo scenarios and agent layouts of gymnasium-robotics 1.4 (``None`` is the single-agent layout).
 MAMUJOCO_LAYOUTS: dict[str, tuple[str, ...]] = {
@@ -74,7 +74,7 @@ def make_mamujoco(
         raise ValueError(
             f"Unknown agent_conf {agent_conf!r} for MaMuJoCo {scenario}. Known scenarios and layouts: {_layouts()}"
         ) from error
-    return CTDEEnv(with_agent_indicator(env) if agent_indicator else env, reward_mode=reward_mode)
+    return CTDEEnv(env, reward_mode=reward_mode, agent_indicator=agent_indicator)
 
 
 def _multiwalker_is_terminal(env: Any) -> bool:
@@ -107,10 +107,11 @@ def make_multiwalker(
     env = multiwalker_v9.parallel_env(n_walkers=n_walkers, **kwargs)
     max_cycles = env.unwrapped.env.max_cycles
     return CTDEEnv(
-        with_agent_indicator(env) if agent_indicator else env,
+        env,
         reward_mode=reward_mode,
         time_limit=max_cycles,
         is_terminal=_multiwalker_is_terminal,
+        agent_indicator=agent_indicator,
     )
 
 
@@ -130,7 +131,7 @@ def make_simple_spread(
 
     kwargs.setdefault("continuous_actions", True)
     env = simple_spread_v3.parallel_env(N=N, max_cycles=max_cycles, **kwargs)
-    return CTDEEnv(with_agent_indicator(env) if agent_indicator else env, reward_mode=reward_mode)
+    return CTDEEnv(env, reward_mode=reward_mode, agent_indicator=agent_indicator)
 
 
 TASKS: dict[str, tuple[str, dict[str, Any]]] = {
