@@ -7,6 +7,8 @@ Both models are built with their defaults on the same task, their replay buffers
 - ``train``: ``model.train(block, batch_size)`` only (the gradient step);
 - ``learn``: ``model.learn(block)``, environment steps and one gradient step per environment step (SB3 defaults).
 
+With ``--compile``, a third model, SERASAC with ``compile_update=True`` (the opt-in path), joins the interleave.
+
 Each figure is the median over blocks, with the interquartile range; the ratio is SAC's median rate over
 SERASAC's (the wall-time cost of SERASAC per gradient step, in units of SAC's).
 
@@ -23,13 +25,16 @@ from timing import interleaved_rates, median_iqr
 from sb3_sera import SERASAC
 
 
-def _build(name: str, env_id: str, seed: int, learning_starts: int, sera_kwargs: dict) -> BaseAlgorithm:
+def _build(name: str, env_id: str, seed: int, learning_starts: int, batch_size: int) -> BaseAlgorithm:
     if name == "SAC":
         model: BaseAlgorithm = SAC("MlpPolicy", env_id, seed=seed, learning_starts=learning_starts)
     else:
-        model = SERASAC("MlpPolicy", env_id, seed=seed, learning_starts=learning_starts, **sera_kwargs)
-    # Fill the replay buffer with random transitions (no gradient step before learning_starts)
+        compile_update = name == "SERASAC+compile"
+        model = SERASAC("MlpPolicy", env_id, seed=seed, learning_starts=learning_starts, compile_update=compile_update)
+    # Fill the replay buffer with random transitions (no gradient step before learning_starts), then take a few
+    # untimed gradient steps (compilation happens here)
     model.learn(learning_starts)
+    model.train(gradient_steps=3, batch_size=batch_size)  # type: ignore[attr-defined]
     return model
 
 
@@ -44,19 +49,20 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=th.get_num_threads(), help="torch threads (default: torch's)")
     parser.add_argument("--modes", nargs="+", default=["train", "learn"], choices=["train", "learn"])
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--compile", action="store_true", help="also time SERASAC with compile_update=True")
     args = parser.parse_args()
 
     th.set_num_threads(args.threads)
-    names = ["SAC", "SERASAC"]
-    models = {name: _build(name, args.env, args.seed, args.learning_starts, {}) for name in names}
+    names = ["SAC", "SERASAC", *(["SERASAC+compile"] if args.compile else [])]
+    models = {name: _build(name, args.env, args.seed, args.learning_starts, args.batch_size) for name in names}
     print(f"{args.env}, batch {args.batch_size}, {args.threads} torch thread(s), torch {th.__version__}")
-    print(f"{'mode':<6} {'algorithm':<9} {'steps/s (median)':>17} {'IQR':>15}  ratio (SAC rate / rate)")
+    print(f"{'mode':<6} {'algorithm':<15} {'steps/s (median)':>17} {'IQR':>15}  ratio (SAC rate / rate)")
     for mode in args.modes:
         rates = interleaved_rates(models, mode, args.blocks, args.block_steps, args.batch_size, args.warmup_blocks)
         stats = {name: median_iqr(values) for name, values in rates.items()}
         for name, (median, low, high) in stats.items():
             ratio = stats["SAC"][0] / median
-            print(f"{mode:<6} {name:<9} {median:>17.1f} {f'{low:.1f}-{high:.1f}':>15}  {ratio:.2f}x")
+            print(f"{mode:<6} {name:<15} {median:>17.1f} {f'{low:.1f}-{high:.1f}':>15}  {ratio:.2f}x")
 
 
 if __name__ == "__main__":

@@ -87,9 +87,13 @@ def test_train_then_enjoy_a_zoo_run(tmp_path):
     enjoyed = sb3_sera("enjoy", "--algo", "serasac", "--env", "Pendulum-v1", "-f", folder, "--exp-id", "1", "-n", "200")
     assert "Mean reward" in enjoyed.stdout
     assert (tmp_path / "masac" / "sb3_sera-SimpleSpread-v0_1" / "sb3_sera-SimpleSpread-v0.zip").exists()
-    # The report reads the zoo's run folders too
+    # The zoo's evaluations recorded the initial-state bias: three evaluations of two episodes
+    bias = np.load(run / "initial_state_bias.npz")
+    assert bias["timesteps"].tolist() == [100, 200, 300] and bias["values"].shape == (3, 2)
+    # The report reads the zoo's run folders too, bias included
     reported = sb3_sera("report", folder, "--out", str(tmp_path / "report"))
     assert "### Pendulum-v1" in reported.stdout and "### sb3_sera/SimpleSpread-v0" in reported.stdout
+    assert (tmp_path / "report" / "Pendulum-v1_bias.png").exists()
 
 
 def test_two_workers_tune_one_study(tmp_path):

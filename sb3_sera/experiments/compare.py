@@ -2,7 +2,8 @@
 Train several algorithms on one task for several seeds, then tabulate and plot the results.
 
 Each run writes a folder in rl-zoo3's layout, ``<out>/<algo>/<env_name>_<seed>/`` (the env id with
-slashes as dashes), holding the ``evaluations.npz`` of SB3's ``EvalCallback``, the training ``0.monitor.csv``,
+slashes as dashes), holding the ``evaluations.npz`` of SB3's ``EvalCallback`` (and the ``initial_state_bias.npz`` of
+:class:`~sb3_sera.common.callbacks.InitialStateBiasCallback`, which also evaluates), the training ``0.monitor.csv``,
 the final model ``<env_name>.zip`` and ``result.json``
 (wall time and final evaluation). A run whose ``result.json`` exists is not run again, so an interrupted
 comparison resumes where it stopped.
@@ -23,11 +24,11 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.base_class import BaseAlgorithm
-from stable_baselines3.common.callbacks import EvalCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import VecEnv
 from tqdm import tqdm
 
+from sb3_sera.common.callbacks import InitialStateBiasCallback
 from sb3_sera.ctde.env import STATE_KEY
 from sb3_sera.experiments.stats import normalized_auc, welch_p_value
 
@@ -73,6 +74,9 @@ class RunResult:
     timesteps: list[int] = field(default_factory=list)
     #: Mean evaluation return at each of ``timesteps``
     returns: list[float] = field(default_factory=list)
+    #: Initial-state value bias at each of ``timesteps``: mean ``V(s0)`` minus mean discounted return over the
+    #: evaluation's episodes (empty for runs evaluated without :class:`InitialStateBiasCallback`)
+    initial_state_bias: list[float] = field(default_factory=list)
 
 
 def env_name(env_id: str) -> str:
@@ -117,11 +121,12 @@ def train_one(spec: RunSpec, out_dir: str, threads: int = 1) -> RunResult:
     env = make_vec_env(spec.env_id, n_envs=1, seed=spec.seed, monitor_dir=str(folder))
     eval_env = make_vec_env(spec.env_id, n_envs=1, seed=spec.seed + 10_000)
     model = algorithm_classes()[spec.algo](policy_for(env), env, seed=spec.seed, verbose=0, **spec.hyperparams)
-    callback = EvalCallback(
+    callback = InitialStateBiasCallback(
         eval_env, eval_freq=spec.eval_freq, n_eval_episodes=spec.n_eval_episodes, log_path=str(folder), verbose=0
     )
     start = time.perf_counter()
-    model.learn(spec.n_timesteps, callback=callback)
+    # With a tensorboard_log hyperparameter, the run's events go to <tensorboard_log>/<label>_<n>
+    model.learn(spec.n_timesteps, callback=callback, tb_log_name=spec.label)
     wall_time = time.perf_counter() - start
     model.save(folder / env_name(spec.env_id))
     evaluations = np.load(folder / "evaluations.npz")
@@ -135,12 +140,18 @@ def train_one(spec: RunSpec, out_dir: str, threads: int = 1) -> RunResult:
         final_return=float(returns[-1]),
         timesteps=[int(t) for t in evaluations["timesteps"]],
         returns=[float(r) for r in returns],
+        initial_state_bias=initial_state_bias(callback.bias_values, callback.bias_returns),
     )
     # Written last: its presence marks the run as finished
     result_file.write_text(json.dumps(asdict(result)))
     env.close()
     eval_env.close()
     return result
+
+
+def initial_state_bias(values: Sequence[Sequence[float]], discounted_returns: Sequence[Sequence[float]]) -> list[float]:
+    """Per evaluation, the mean initial-state value minus the mean discounted return of its episodes."""
+    return [float(np.mean(v) - np.mean(r)) for v, r in zip(values, discounted_returns, strict=True)]
 
 
 def execute(
@@ -279,6 +290,22 @@ def summary_table(results: Sequence[RunResult]) -> str:
 
 def plot_learning_curves(results: Sequence[RunResult], path: str | Path) -> None:
     """Mean evaluation return against timesteps per algorithm, with a 95% confidence band over seeds."""
+    _plot_over_runs(results, "returns", "evaluation return", path)
+
+
+def plot_initial_state_bias(results: Sequence[RunResult], path: str | Path) -> None:
+    """
+    Initial-state value bias ``V(s0) - sum_t gamma^t r_t`` against timesteps per algorithm (paper Fig. 4a), with a
+    95% confidence band over seeds; runs without bias records are left out.
+    """
+    runs = [run for run in results if run.initial_state_bias]
+    _plot_over_runs(runs, "initial_state_bias", "initial-state bias", path, zero_line=True)
+
+
+def _plot_over_runs(
+    results: Sequence[RunResult], attribute: str, ylabel: str, path: str | Path, zero_line: bool = False
+) -> None:
+    """One of a run's per-evaluation lists against timesteps: mean per algorithm, 95% band over its runs."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -287,17 +314,20 @@ def plot_learning_curves(results: Sequence[RunResult], path: str | Path) -> None
     fig, ax = plt.subplots(figsize=(6, 4))
     for algo in dict.fromkeys(result.algo for result in results):
         runs = [result for result in results if result.algo == algo]
-        length = min(len(run.returns) for run in runs)
-        curves = np.array([run.returns[:length] for run in runs])
+        length = min(len(getattr(run, attribute)) for run in runs)
+        curves = np.array([getattr(run, attribute)[:length] for run in runs])
         timesteps = np.array(runs[0].timesteps[:length])
         mean = curves.mean(axis=0)
         half_width = 1.96 * curves.std(axis=0, ddof=1) / math.sqrt(len(runs)) if len(runs) > 1 else 0 * mean
         ax.plot(timesteps, mean, label=f"{algo} (n={len(runs)})")
         ax.fill_between(timesteps, mean - half_width, mean + half_width, alpha=0.25)
+    if zero_line:
+        ax.axhline(0.0, color="black", linewidth=0.8)
     ax.set_xlabel("environment steps")
-    ax.set_ylabel("evaluation return")
-    ax.set_title(results[0].env_id)
-    ax.legend()
+    ax.set_ylabel(ylabel)
+    if results:
+        ax.set_title(results[0].env_id)
+        ax.legend()
     fig.tight_layout()
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)

@@ -3,7 +3,9 @@ A Markdown report from rl-zoo3-style run folders (``<root>/<algo>/<env_name>_<id
 ``sb3-sera train``, ``compare`` and ``bench``) and, optionally, the TensorBoard logs of the same runs.
 
 Per task: the paper's Table 1/2 layout with our final evaluation returns beside the paper's, the normalized AUC,
-Welch's t-test p-value against SERASAC and SERASAC's improvement in percent; learning curves; and, from
+Welch's t-test p-value against SERASAC and SERASAC's improvement in percent; learning curves; the initial-state
+value bias over training (from ``initial_state_bias.npz``, written by the evaluations of ``train``, ``compare`` and
+``bench``); and, from
 TensorBoard, the TD-target variance, the inter-critic correlation and each critic's kappa over training.
 """
 
@@ -16,7 +18,15 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 
-from sb3_sera.experiments.compare import RunResult, env_name, plot_learning_curves, summarize
+from sb3_sera.common.callbacks import BIAS_FILE
+from sb3_sera.experiments.compare import (
+    RunResult,
+    env_name,
+    initial_state_bias,
+    plot_initial_state_bias,
+    plot_learning_curves,
+    summarize,
+)
 from sb3_sera.experiments.stats import improvement_percent
 
 #: Paper Table 1 (multi-agent, 300K steps) and Table 2 (single-agent): (mean, std) of the team return
@@ -57,7 +67,10 @@ def _env_ids() -> dict[str, str]:
 
 
 def load_runs(roots: Sequence[str | Path]) -> list[RunResult]:
-    """Every run under the roots: ``<root>/<algo>/<env_name>_<id>/evaluations.npz``."""
+    """
+    Every run under the roots: ``<root>/<algo>/<env_name>_<id>/evaluations.npz``, with the initial-state bias of
+    its ``initial_state_bias.npz`` where there is one.
+    """
     ids = _env_ids()
     runs = []
     for root in roots:
@@ -69,6 +82,10 @@ def load_runs(roots: Sequence[str | Path]) -> list[RunResult]:
             result_file = folder / "result.json"
             wall_time = json.loads(result_file.read_text())["wall_time_s"] if result_file.exists() else math.nan
             timesteps = [int(t) for t in evaluations["timesteps"]]
+            bias: list[float] = []
+            if (folder / BIAS_FILE).exists():
+                records = np.load(folder / BIAS_FILE)
+                bias = initial_state_bias(records["values"], records["discounted_returns"])
             runs.append(
                 RunResult(
                     algo=folder.parent.name,
@@ -79,6 +96,7 @@ def load_runs(roots: Sequence[str | Path]) -> list[RunResult]:
                     final_return=float(returns[-1]),
                     timesteps=timesteps,
                     returns=[float(r) for r in returns],
+                    initial_state_bias=bias,
                 )
             )
     return runs
@@ -94,8 +112,8 @@ def task_table(env_id: str, runs: Sequence[RunResult]) -> str:
         f"### {env_id} (our runs: {budget:,} steps)",
         "",
         f"| algorithm | runs | final return (mean ± std) | paper at 300K (mean ± std) | normalized AUC "
-        f"| p vs {REFERENCE} (Welch) | {REFERENCE} improvement % |",
-        "|---|---|---|---|---|---|---|",
+        f"| p vs {REFERENCE} (Welch) | {REFERENCE} improvement % | initial-state bias (last evaluation) |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for algo in algos:
         summary = summaries[algo]
@@ -105,9 +123,11 @@ def task_table(env_id: str, runs: Sequence[RunResult]) -> str:
         improvement = None
         if algo != REFERENCE and REFERENCE in summaries and values.mean() != 0:
             improvement = improvement_percent(float(summaries[REFERENCE].finals.mean()), float(values.mean()))
+        biases = [run.initial_state_bias[-1] for run in runs if run.algo == algo and run.initial_state_bias]
         lines.append(
             f"| {algo} | {len(values)} | {values.mean():.1f} ± {values.std():.1f} | {paper_cell} | {summary.auc:.1f} "
-            f"| {'' if p_value is None else f'{p_value:.3f}'} | {'' if improvement is None else f'{improvement:+.1f}'} |"
+            f"| {'' if p_value is None else f'{p_value:.3f}'} | {'' if improvement is None else f'{improvement:+.1f}'} "
+            f"| {f'{np.mean(biases):.1f}' if biases else ''} |"
         )
     others = [name for name in paper if name not in {PAPER_NAMES.get(algo) for algo in algos}]
     if others:
@@ -189,6 +209,10 @@ def write_report(roots: Sequence[str | Path], out: str | Path, tensorboard_dirs:
         figure = folder / f"{env_name(env_id)}_curves.png"
         plot_learning_curves(task_runs, figure)
         sections += [task_table(env_id, task_runs), "", f"![{env_id}]({figure.name})", ""]
+        if any(run.initial_state_bias for run in task_runs):
+            bias_figure = folder / f"{env_name(env_id)}_bias.png"
+            plot_initial_state_bias(task_runs, bias_figure)
+            sections += [f"![{env_id} initial-state bias]({bias_figure.name})", ""]
     if tensorboard_dirs:
         scalars = load_scalars(tensorboard_dirs)
         if scalars:

@@ -13,6 +13,7 @@ from typing import Any
 
 from stable_baselines3.common.base_class import BaseAlgorithm
 
+from sb3_sera.common.callbacks import InitialStateBiasCallback
 from sb3_sera.ctde.algorithms import MADDPG, MAPPO, MASAC, MATD3
 from sb3_sera.sera import SERASAC
 
@@ -60,10 +61,14 @@ def convert_serasac_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
 
 
 def register_with_zoo() -> None:
-    """Add the package's algorithms, samplers and converters to rl-zoo3's tables (idempotent)."""
-    from rl_zoo3 import hyperparams_opt, utils
+    """
+    Add the package's algorithms, samplers and converters to rl-zoo3's tables, and make its evaluations also record
+    the initial-state value bias (:class:`~sb3_sera.common.callbacks.InitialStateBiasCallback`); idempotent.
+    """
+    from rl_zoo3 import exp_manager, hyperparams_opt, utils
 
     utils.ALGOS.update(ZOO_ALGOS)
+    exp_manager.EvalCallback = InitialStateBiasCallback  # type: ignore[misc]
     samplers, converters = hyperparams_opt.HYPERPARAMS_SAMPLER, hyperparams_opt.HYPERPARAMS_CONVERTER
     samplers.update(
         serasac=sample_serasac_params,

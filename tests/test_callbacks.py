@@ -1,0 +1,77 @@
+"""InitialStateBiasCallback: V(s0) and the discounted return against hand-computed values."""
+
+import gymnasium as gym
+import numpy as np
+import pandas as pd
+import pytest
+import torch as th
+from gymnasium import spaces
+from stable_baselines3 import PPO, SAC
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.logger import configure
+
+from sb3_sera import SERASAC
+from sb3_sera.common.callbacks import BIAS_FILE, InitialStateBiasCallback
+
+START = np.array([0.3, -0.2], dtype=np.float32)
+
+
+class CountingEnv(gym.Env):
+    """Starts at START, pays rewards 1, 2, 3 and ends after three steps; actions in [-2, 2]."""
+
+    observation_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
+    action_space = spaces.Box(-2.0, 2.0, (1,), np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t = 0
+        return START.copy(), {}
+
+    def step(self, action):
+        self.t += 1
+        return START.copy(), float(self.t), self.t == 3, False, {}
+
+
+def expected_value(model) -> float:
+    """Mean of the critics at the start state and the deterministic action, scaled to [-1, 1] by hand."""
+    action, _ = model.predict(START, deterministic=True)
+    obs = th.as_tensor(START).reshape(1, -1)
+    with th.no_grad():
+        if isinstance(model, PPO):
+            return float(model.policy.predict_values(obs))
+        return float(th.cat(model.critic(obs, th.as_tensor(action / 2.0).reshape(1, -1)), dim=1).mean())
+
+
+class Probe(BaseCallback):
+    """Computes the expected V(s0) right after each evaluation, before the model trains again."""
+
+    def __init__(self, every: int) -> None:
+        super().__init__()
+        self.every, self.values = every, []
+
+    def _on_step(self) -> bool:
+        if self.n_calls % self.every == 0:
+            self.values.append(expected_value(self.model))
+        return True
+
+
+@pytest.mark.parametrize("algo", [SERASAC, SAC, PPO])
+def test_bias_by_hand(algo, tmp_path):
+    kwargs = {"n_steps": 18, "batch_size": 6} if algo is PPO else {"learning_starts": 6, "batch_size": 4}
+    model = algo("MlpPolicy", CountingEnv(), gamma=0.5, seed=0, **kwargs)
+    eval_env = make_vec_env(CountingEnv, n_envs=2)
+    callback = InitialStateBiasCallback(eval_env, eval_freq=9, n_eval_episodes=4, log_path=str(tmp_path), verbose=0)
+    model.set_logger(configure(str(tmp_path / "log"), ["csv"]))
+    probe = Probe(every=9)
+    model.learn(18, callback=[callback, probe])
+    # 1 + 0.5 * 2 + 0.25 * 3 = 2.75 for every episode, V(s0) that of the model at the time of the evaluation
+    records = np.load(tmp_path / BIAS_FILE)
+    assert records["timesteps"].tolist() == [9, 18]
+    np.testing.assert_allclose(records["discounted_returns"], np.full((2, 4), 2.75))
+    np.testing.assert_allclose(records["values"], np.repeat(np.array(probe.values)[:, None], 4, axis=1), rtol=1e-5)
+    # the evaluation's rows of the logger (off-policy training also dumps rows of its own)
+    logged = pd.read_csv(tmp_path / "log" / "progress.csv").dropna(subset=["eval/initial_state_bias"])
+    np.testing.assert_allclose(logged["eval/initial_state_bias"], np.array(probe.values) - 2.75, rtol=1e-5)
+    np.testing.assert_allclose(logged["eval/discounted_return"], [2.75, 2.75])
+    assert (tmp_path / "evaluations.npz").exists()
