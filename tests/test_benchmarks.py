@@ -1,0 +1,26 @@
+"""The benchmark scripts run end to end at tiny sizes (their figures are measured by hand, never asserted)."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+TINY_TIMING = ["--blocks", "1", "--block-steps", "2", "--threads", "1"]
+
+
+@pytest.mark.parametrize(
+    "script, args, expected",
+    [
+        ("train_speed.py", ["--env", "Pendulum-v1", "--warmup-blocks", "0", *TINY_TIMING], "SERASAC"),
+        ("scaling.py", ["--learning-starts", "10", *TINY_TIMING], "fit t ="),
+        ("flops.py", ["--env", "Pendulum-v1", "--steps", "2", "--learning-starts", "100", "--threads", "1"], "matmul work"),
+        ("memory.py", ["--env", "Pendulum-v1", "--buffer-size", "1000", "--gradient-steps", "2"], "SERASAC"),
+    ],
+)
+def test_benchmark_script_runs(script, args, expected):
+    command = [sys.executable, str(BENCHMARKS / script), *args]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=600, cwd=BENCHMARKS)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert expected in result.stdout
