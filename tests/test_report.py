@@ -1,12 +1,14 @@
 """`sb3-sera report` on fixed run folders (values by hand and by scipy) and on TensorBoard logs of a real run."""
 
+import shutil
+
 import numpy as np
 import pytest
 from scipy import stats
 
 from sb3_sera import SERASAC
 from sb3_sera.experiments.cli import main
-from sb3_sera.experiments.report import load_runs, load_scalars, write_report
+from sb3_sera.experiments.report import load_runs, load_scalars, split_by_task, write_report
 
 TASK = "sb3_sera/HalfCheetah-6x1-v0"
 
@@ -59,9 +61,16 @@ def test_report_diagnostics_from_tensorboard(tmp_path, capsys):
     steps, values = scalars["SERASAC"]["train/td_target_var"][0]
     assert steps.tolist() == [200, 400] and np.all(values > 0)
     assert len([tag for tag in scalars["SERASAC"] if tag.startswith("train/kappa_")]) == 5
+    # The same events as a run of the task's variant "serasac", in rl-zoo3's <tb>/<env_name>/<name>_<n> layout
+    shutil.copytree(tmp_path / "tb" / "SERASAC_1", tmp_path / "tb" / "sb3_sera-HalfCheetah-6x1-v0" / "serasac_1")
+    assert split_by_task(load_scalars([tmp_path / "tb"])).keys() == {TASK, None}
     fake_run(tmp_path / "runs", "serasac", 1, [0.0, 1.0, 2.0])
     main(["report", str(tmp_path / "runs"), "--tensorboard-log", str(tmp_path / "tb"), "--out", str(tmp_path / "out")])
-    assert "Training diagnostics" in capsys.readouterr().out
+    report = capsys.readouterr().out
+    # the task's runs are drawn in the task's section, the rest in a section of their own
+    assert "![sb3_sera/HalfCheetah-6x1-v0 training diagnostics](sb3_sera-HalfCheetah-6x1-v0_diagnostics.png)" in report
+    assert (tmp_path / "out" / "sb3_sera-HalfCheetah-6x1-v0_diagnostics.png").stat().st_size > 0
+    assert "Training diagnostics" in report
     assert (tmp_path / "out" / "diagnostics.png").stat().st_size > 0
 
 

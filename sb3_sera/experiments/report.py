@@ -186,10 +186,26 @@ def plot_diagnostics(scalars: dict[str, dict[str, list[tuple[np.ndarray, np.ndar
     plt.close(fig)
 
 
+def split_by_task(
+    scalars: dict[str, dict[str, list[tuple[np.ndarray, np.ndarray]]]],
+) -> dict[str | None, dict[str, dict[str, list[tuple[np.ndarray, np.ndarray]]]]]:
+    """The run groups of :func:`load_scalars` by task (``"<env id> <group>"``), None for groups without a task."""
+    ids = set(_env_ids().values())
+    tasks: dict[str | None, dict[str, dict[str, list[tuple[np.ndarray, np.ndarray]]]]] = defaultdict(dict)
+    for group, tags in scalars.items():
+        task, _, name = group.partition(" ")
+        if name and task in ids:
+            tasks[task][name] = tags
+        else:
+            tasks[None][group] = tags
+    return tasks
+
+
 def write_report(roots: Sequence[str | Path], out: str | Path, tensorboard_dirs: Sequence[str | Path] = ()) -> Path:
     """
-    Write the report to the folder ``out``: ``report.md``, a learning-curve figure per task and, with TensorBoard
-    logs, ``diagnostics.png``.
+    Write the report to the folder ``out``: ``report.md``, per task a learning-curve figure, an initial-state bias
+    figure (runs that recorded it) and a diagnostics figure (TensorBoard logs under ``<tb>/<env_name>/``), and
+    ``diagnostics.png`` for TensorBoard runs of no known task.
 
     :return: the path of ``report.md``
     """
@@ -204,6 +220,7 @@ def write_report(roots: Sequence[str | Path], out: str | Path, tensorboard_dirs:
     by_task: dict[str, list[RunResult]] = defaultdict(list)
     for run in runs:
         by_task[run.env_id].append(run)
+    diagnostics = split_by_task(load_scalars(tensorboard_dirs)) if tensorboard_dirs else {}
     sections = ["# Results", "", f"Runs read from: {', '.join(map(str, roots))}.", ""]
     for env_id, task_runs in by_task.items():
         figure = folder / f"{env_name(env_id)}_curves.png"
@@ -213,11 +230,13 @@ def write_report(roots: Sequence[str | Path], out: str | Path, tensorboard_dirs:
             bias_figure = folder / f"{env_name(env_id)}_bias.png"
             plot_initial_state_bias(task_runs, bias_figure)
             sections += [f"![{env_id} initial-state bias]({bias_figure.name})", ""]
-    if tensorboard_dirs:
-        scalars = load_scalars(tensorboard_dirs)
-        if scalars:
-            plot_diagnostics(scalars, folder / "diagnostics.png")
-            sections += ["## Training diagnostics", "", "![diagnostics](diagnostics.png)", ""]
+        if env_id in diagnostics:
+            diagnostics_figure = folder / f"{env_name(env_id)}_diagnostics.png"
+            plot_diagnostics(diagnostics[env_id], diagnostics_figure)
+            sections += [f"![{env_id} training diagnostics]({diagnostics_figure.name})", ""]
+    if None in diagnostics:
+        plot_diagnostics(diagnostics[None], folder / "diagnostics.png")
+        sections += ["## Training diagnostics", "", "![diagnostics](diagnostics.png)", ""]
     report = folder / "report.md"
     report.write_text("\n".join(sections))
     return report
