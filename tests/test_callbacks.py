@@ -6,7 +6,7 @@ import pandas as pd
 import pytest
 import torch as th
 from gymnasium import spaces
-from stable_baselines3 import PPO, SAC
+from stable_baselines3 import DQN, PPO, SAC
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import configure
@@ -75,3 +75,14 @@ def test_bias_by_hand(algo, tmp_path):
     np.testing.assert_allclose(logged["eval/initial_state_bias"], np.array(probe.values) - 2.75, rtol=1e-5)
     np.testing.assert_allclose(logged["eval/discounted_return"], [2.75, 2.75])
     assert (tmp_path / "evaluations.npz").exists()
+
+
+def test_models_without_critics_are_evaluated_without_bias(tmp_path):
+    model = DQN("MlpPolicy", "CartPole-v1", learning_starts=10, seed=0)
+    callback = InitialStateBiasCallback(
+        make_vec_env("CartPole-v1"), eval_freq=20, n_eval_episodes=1, log_path=str(tmp_path), verbose=0
+    )
+    with pytest.warns(UserWarning, match="DQNPolicy has neither Q critics over Box actions nor a feed-forward value"):
+        model.learn(40, callback=callback)
+    assert np.load(tmp_path / "evaluations.npz")["timesteps"].tolist() == [20, 40]
+    assert not (tmp_path / BIAS_FILE).exists() and callback.bias_timesteps == []

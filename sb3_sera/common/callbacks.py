@@ -1,5 +1,7 @@
 """Evaluation that also measures the initial-state value bias of the critics (paper section 6, Fig. 4a)."""
 
+import inspect
+import warnings
 from pathlib import Path
 from typing import Any, cast
 
@@ -24,7 +26,8 @@ class InitialStateBiasCallback(EvalCallback):
     Per evaluation, the means over episodes go to the logger (``eval/initial_state_value``,
     ``eval/discounted_return``, ``eval/initial_state_bias``) and, with a ``log_path``, to ``initial_state_bias.npz``
     (``timesteps``, ``values``, ``discounted_returns``, one row per evaluation and one column per episode).
-    Takes the arguments of ``EvalCallback``.
+    Takes the arguments of ``EvalCallback``. For a model with neither Q critics over Box actions nor a
+    feed-forward value function (DQN, recurrent policies), it warns once and evaluates as ``EvalCallback`` does.
     """
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
@@ -35,23 +38,39 @@ class InitialStateBiasCallback(EvalCallback):
         self.bias_timesteps: list[int] = []
         self.bias_values: list[list[float]] = []
         self.bias_returns: list[list[float]] = []
+        #: Whether the model has critics or a value function to evaluate (set when training starts)
+        self.records_bias = False
+
+    def _init_callback(self) -> None:
+        super()._init_callback()
+        policy = self.model.policy
+        self.records_bias = _has_value_function(policy) or (
+            isinstance(policy.action_space, spaces.Box) and isinstance(getattr(policy, "critic", None), nn.Module)
+        )
+        if not self.records_bias:
+            warnings.warn(
+                f"InitialStateBiasCallback: {type(policy).__name__} has neither Q critics over Box actions nor a "
+                "feed-forward value function, so the initial-state bias is not recorded; evaluations go on as usual",
+                stacklevel=2,
+            )
 
     def _initial_value(self, observation: Any, action: np.ndarray) -> float:
         policy = self.model.policy
         with th.no_grad():
             obs_tensor, _ = policy.obs_to_tensor(observation)
-            if isinstance(policy, ActorCriticPolicy):
-                return float(policy.predict_values(obs_tensor).mean())
-            if isinstance(policy.action_space, spaces.Box):
-                action = policy.scale_action(action)
-            action_tensor = th.as_tensor(action, device=policy.device).float().reshape(1, -1)
-            # The critics of SB3's off-policy algorithms (and of SERASAC's ensemble) return one value per critic
-            critic = cast(nn.Module, policy.critic)
-            q_values = th.cat(critic(obs_tensor, action_tensor), dim=1)
+            if _has_value_function(policy):
+                return float(cast(ActorCriticPolicy, policy).predict_values(obs_tensor).mean())
+            action_tensor = th.as_tensor(policy.scale_action(action), device=policy.device).float().reshape(1, -1)
+            # SB3's critics (and SERASAC's ensemble) return one value per critic, sb3-contrib's TQC one tensor of
+            # quantiles per critic: the mean over all of them either way
+            values = cast(nn.Module, policy.critic)(obs_tensor, action_tensor)
+            q_values = values if isinstance(values, th.Tensor) else th.cat(values, dim=1)
         return float(q_values.mean())
 
     def _log_success_callback(self, locals_: dict[str, Any], globals_: dict[str, Any]) -> None:
         super()._log_success_callback(locals_, globals_)
+        if not self.records_bias:
+            return
         env_index, step = locals_["i"], int(locals_["current_lengths"][locals_["i"]]) - 1
         if step == 0:
             observations = locals_["observations"]
@@ -77,7 +96,7 @@ class InitialStateBiasCallback(EvalCallback):
         if evaluating:
             self._values, self._returns, self._running = [], [], {}
         continue_training = super()._on_step()
-        if evaluating:
+        if evaluating and self.records_bias:
             self.bias_timesteps.append(self.num_timesteps)
             self.bias_values.append(self._values)
             self.bias_returns.append(self._returns)
@@ -89,3 +108,8 @@ class InitialStateBiasCallback(EvalCallback):
                     discounted_returns=self.bias_returns,
                 )
         return continue_training
+
+
+def _has_value_function(policy: Any) -> bool:
+    """An on-policy actor-critic whose value function takes the observation alone (not a recurrent one)."""
+    return isinstance(policy, ActorCriticPolicy) and len(inspect.signature(policy.predict_values).parameters) == 1
