@@ -6,6 +6,7 @@ import pandas as pd
 import pytest
 import torch as th
 from gymnasium import spaces
+from sb3_contrib import TQC
 from stable_baselines3 import DQN, PPO, SAC
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
@@ -40,7 +41,9 @@ def expected_value(model) -> float:
     with th.no_grad():
         if isinstance(model, PPO):
             return float(model.policy.predict_values(obs))
-        return float(th.cat(model.critic(obs, th.as_tensor(action / 2.0).reshape(1, -1)), dim=1).mean())
+        values = model.critic(obs, th.as_tensor(action / 2.0).reshape(1, -1))
+        # TQC: one tensor of quantiles per critic; SAC and SERASAC: a tuple of values
+        return float(values.mean() if isinstance(values, th.Tensor) else th.cat(values, dim=1).mean())
 
 
 class Probe(BaseCallback):
@@ -56,7 +59,7 @@ class Probe(BaseCallback):
         return True
 
 
-@pytest.mark.parametrize("algo", [SERASAC, SAC, PPO])
+@pytest.mark.parametrize("algo", [SERASAC, SAC, TQC, PPO])
 def test_bias_by_hand(algo, tmp_path):
     kwargs = {"n_steps": 18, "batch_size": 6} if algo is PPO else {"learning_starts": 6, "batch_size": 4}
     model = algo("MlpPolicy", CountingEnv(), gamma=0.5, seed=0, **kwargs)
