@@ -2,6 +2,7 @@
 
 import inspect
 import warnings
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, cast
 
@@ -89,7 +90,7 @@ class InitialStateBiasCallback(EvalCallback):
             # Recorded after every episode: the logger keeps the last value, the mean over the whole evaluation
             self.logger.record("eval/initial_state_value", float(np.mean(self._values)))
             self.logger.record("eval/discounted_return", float(np.mean(self._returns)))
-            self.logger.record("eval/initial_state_bias", float(np.mean(self._values) - np.mean(self._returns)))
+            self.logger.record("eval/initial_state_bias", initial_state_bias([self._values], [self._returns])[0])
 
     def _on_step(self) -> bool:
         evaluating = self.eval_freq > 0 and self.n_calls % self.eval_freq == 0
@@ -108,6 +109,11 @@ class InitialStateBiasCallback(EvalCallback):
                     discounted_returns=self.bias_returns,
                 )
         return continue_training
+
+
+def initial_state_bias(values: Sequence[Sequence[float]], discounted_returns: Sequence[Sequence[float]]) -> list[float]:
+    """Per evaluation, the mean initial-state value minus the mean discounted return of its episodes."""
+    return [float(np.mean(v) - np.mean(r)) for v, r in zip(values, discounted_returns, strict=True)]
 
 
 def _has_value_function(policy: Any) -> bool:

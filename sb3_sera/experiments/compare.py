@@ -28,7 +28,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import VecEnv
 from tqdm import tqdm
 
-from sb3_sera.common.callbacks import InitialStateBiasCallback
+from sb3_sera.common.callbacks import InitialStateBiasCallback, initial_state_bias
 from sb3_sera.ctde.env import STATE_KEY
 from sb3_sera.experiments.stats import normalized_auc, welch_p_value
 
@@ -147,11 +147,6 @@ def train_one(spec: RunSpec, out_dir: str, threads: int = 1) -> RunResult:
     env.close()
     eval_env.close()
     return result
-
-
-def initial_state_bias(values: Sequence[Sequence[float]], discounted_returns: Sequence[Sequence[float]]) -> list[float]:
-    """Per evaluation, the mean initial-state value minus the mean discounted return of its episodes."""
-    return [float(np.mean(v) - np.mean(r)) for v, r in zip(values, discounted_returns, strict=True)]
 
 
 def execute(

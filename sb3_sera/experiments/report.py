@@ -18,11 +18,10 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 
-from sb3_sera.common.callbacks import BIAS_FILE
+from sb3_sera.common.callbacks import BIAS_FILE, initial_state_bias
 from sb3_sera.experiments.compare import (
     RunResult,
     env_name,
-    initial_state_bias,
     plot_initial_state_bias,
     plot_learning_curves,
     summarize,

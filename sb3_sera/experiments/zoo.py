@@ -25,6 +25,8 @@ ZOO_ALGOS: dict[str, type[BaseAlgorithm]] = {
     "maddpg": MADDPG,
     "mappo": MAPPO,
 }
+#: The multi-agent algorithms tune in the search space of the SB3 algorithm they are built on
+ZOO_BASE_ALGOS = {"masac": "sac", "matd3": "td3", "maddpg": "ddpg", "mappo": "ppo"}
 #: One YAML file per algorithm, keyed by env id (rl-zoo3's format)
 HYPERPARAMS_DIR = Path(__file__).resolve().parents[2] / "hyperparams"
 #: The zoo commands the CLI passes through
@@ -70,20 +72,9 @@ def register_with_zoo() -> None:
     utils.ALGOS.update(ZOO_ALGOS)
     exp_manager.EvalCallback = InitialStateBiasCallback  # type: ignore[misc]
     samplers, converters = hyperparams_opt.HYPERPARAMS_SAMPLER, hyperparams_opt.HYPERPARAMS_CONVERTER
-    samplers.update(
-        serasac=sample_serasac_params,
-        masac=samplers["sac"],
-        matd3=samplers["td3"],
-        maddpg=samplers["ddpg"],
-        mappo=samplers["ppo"],
-    )
-    converters.update(
-        serasac=convert_serasac_params,
-        masac=converters["sac"],
-        matd3=converters["td3"],
-        maddpg=converters["ddpg"],
-        mappo=converters["ppo"],
-    )
+    samplers["serasac"], converters["serasac"] = sample_serasac_params, convert_serasac_params
+    for algo, base in ZOO_BASE_ALGOS.items():
+        samplers[algo], converters[algo] = samplers[base], converters[base]
 
 
 def _flag_value(argv: Sequence[str], *names: str) -> str | None:

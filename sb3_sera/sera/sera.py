@@ -378,7 +378,7 @@ class SERASAC(SAC):
             with th.no_grad():
                 # Target actions from the current actor
                 next_actions, next_log_prob = self.actor.action_log_prob(replay_data.next_observations)
-            critic_update = self._critic_update(
+            next_q_values, next_q_aggregate, target_q_values, current_q_values, critic_loss, update = self._critic_update(
                 replay_data.observations,
                 replay_data.actions,
                 replay_data.next_observations,
@@ -389,7 +389,6 @@ class SERASAC(SAC):
                 next_log_prob.reshape(-1, 1),
                 ent_coef,
             )
-            next_q_values, next_q_aggregate, target_q_values, current_q_values, critic_loss, update = critic_update
 
             # Disagreement-adjusted entropy target H_eff = H_target - beta * U at the replay pairs
             assert isinstance(self.target_entropy, float)
