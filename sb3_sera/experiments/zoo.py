@@ -1,8 +1,8 @@
 """
 rl-zoo3 bridge. rl-zoo3 has no plugin mechanism, so this module adds the package's algorithms to the zoo's
 algorithm table (``rl_zoo3.utils.ALGOS``) and to its hyperparameter sampler and converter tables (for
-``-optimize``), then runs the zoo's own ``train``, ``enjoy`` and ``record_video`` with this repository's
-``hyperparams/<algo>.yml`` as the default ``--conf-file``.
+``-optimize``), then runs the zoo's own ``train``, ``enjoy`` and ``record_video`` with the package's
+``sb3_sera/hyperparams/<algo>.yml`` as the default ``--conf-file``.
 """
 
 import runpy
@@ -27,8 +27,8 @@ ZOO_ALGOS: dict[str, type[BaseAlgorithm]] = {
 }
 #: The multi-agent algorithms tune in the search space of the SB3 algorithm they are built on
 ZOO_BASE_ALGOS = {"masac": "sac", "matd3": "td3", "maddpg": "ddpg", "mappo": "ppo"}
-#: One YAML file per algorithm, keyed by env id (rl-zoo3's format)
-HYPERPARAMS_DIR = Path(__file__).resolve().parents[2] / "hyperparams"
+#: One YAML file per algorithm, keyed by env id (rl-zoo3's format), shipped with the package
+HYPERPARAMS_DIR = Path(__file__).resolve().parents[1] / "hyperparams"
 #: The zoo commands the CLI passes through
 ZOO_COMMANDS = ("train", "enjoy", "record-video", "optimize")
 
@@ -89,8 +89,8 @@ def _flag_value(argv: Sequence[str], *names: str) -> str | None:
 
 def zoo_argv(command: str, argv: Sequence[str]) -> list[str]:
     """
-    The zoo's arguments for ``command``: ``optimize`` is ``train -optimize``, and ``train``/``optimize`` read this
-    repository's ``hyperparams/<algo>.yml`` unless ``--conf-file`` is given.
+    The zoo's arguments for ``command``: ``optimize`` is ``train -optimize``, and ``train``/``optimize`` read the
+    package's ``sb3_sera/hyperparams/<algo>.yml`` unless ``--conf-file`` is given.
     """
     args = list(argv)
     if command not in ZOO_COMMANDS:
