@@ -1,8 +1,17 @@
-"""Hyperparameter validation with errors that name the parameter, its value and what is allowed."""
+"""
+Hyperparameter validation with errors that name the parameter, its value and what is allowed.
+
+The checks accept what SB3 itself accepts: numpy scalars (``np.float32(0.5)``, ``np.int64(64)``) and, for integer
+hyperparameters, integral floats (``1e4``, as YAML files and rl-zoo3's ``-params learning_starts:1e4`` give them);
+each returns the value as a plain Python ``float`` or ``int``.
+"""
 
 import math
+import numbers
 from collections.abc import Collection
 from typing import Any
+
+import numpy as np
 
 
 def check_range(
@@ -12,44 +21,53 @@ def check_range(
     high: float | None = None,
     low_inclusive: bool = True,
     high_inclusive: bool = True,
-) -> None:
+) -> float:
     """
     Raise ``ValueError`` unless ``value`` is a finite real number in the given interval.
 
     :param name: the hyperparameter's name, as the user types it
-    :param value: its value
+    :param value: its value (a Python or numpy real number)
     :param low: lower bound, or ``None`` for none
     :param high: upper bound, or ``None`` for none
     :param low_inclusive: whether ``low`` itself is allowed
     :param high_inclusive: whether ``high`` itself is allowed
+    :return: ``value`` as a Python float
     """
     left = "-inf" if low is None else f"{low!r}"
     right = "inf" if high is None else f"{high!r}"
     opening = "[" if low_inclusive and low is not None else "("
     closing = "]" if high_inclusive and high is not None else ")"
     allowed = f"{opening}{left}, {right}{closing}"
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+    if not _is_real(value) or not math.isfinite(value):
         raise ValueError(f"{name}={value!r} is invalid: expected a finite number in {allowed}")
-    below = low is not None and (value < low or (value == low and not low_inclusive))
-    above = high is not None and (value > high or (value == high and not high_inclusive))
+    number = float(value)
+    below = low is not None and (number < low or (number == low and not low_inclusive))
+    above = high is not None and (number > high or (number == high and not high_inclusive))
     if below or above:
         raise ValueError(f"{name}={value!r} is out of range: allowed {allowed}")
+    return number
 
 
-def check_int(name: str, value: Any, low: int, high: int | None = None) -> None:
+def check_int(name: str, value: Any, low: int, high: int | None = None, reason: str = "") -> int:
     """
     Raise ``ValueError`` unless ``value`` is an integer in ``[low, high]`` (``high=None``: no upper bound).
+
+    Integral floats (``1e4``) and numpy integers count as integers.
 
     :param name: the hyperparameter's name
     :param value: its value
     :param low: smallest allowed value
     :param high: largest allowed value
+    :param reason: why the range is what it is, appended to the message of an out-of-range value
+    :return: ``value`` as a Python int
     """
     allowed = f"an integer >= {low}" if high is None else f"an integer in [{low}, {high}]"
-    if isinstance(value, bool) or not isinstance(value, int):
+    if not _is_real(value) or not math.isfinite(value) or not float(value).is_integer():
         raise ValueError(f"{name}={value!r} is invalid: expected {allowed}")
-    if value < low or (high is not None and value > high):
-        raise ValueError(f"{name}={value!r} is out of range: allowed {allowed}")
+    number = int(value)
+    if number < low or (high is not None and number > high):
+        raise ValueError(f"{name}={value!r} is out of range: allowed {allowed}{f'. {reason}' if reason else ''}")
+    return number
 
 
 def check_choice(name: str, value: Any, choices: Collection[Any]) -> None:
@@ -62,3 +80,8 @@ def check_choice(name: str, value: Any, choices: Collection[Any]) -> None:
     """
     if value not in choices:
         raise ValueError(f"{name}={value!r} is invalid: expected one of {', '.join(map(repr, choices))}")
+
+
+def _is_real(value: Any) -> bool:
+    """Whether ``value`` is a real number (Python or numpy), booleans excluded."""
+    return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))

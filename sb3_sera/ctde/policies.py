@@ -1,18 +1,18 @@
 """
 CTDE policies: one actor per agent reading only its own observation, centralized critics on the state and the
-joint action (SPEC section 2). The off-policy policies reuse SB3's per-algorithm actors, one per agent.
+joint action (docs/SPEC.md, section 2). The off-policy policies reuse SB3's per-algorithm actors, one per agent.
 """
 
-from typing import Any, cast
+from typing import Any, cast, overload
 
 import numpy as np
 import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.base_class import BaseAlgorithm, maybe_make_env
 from stable_baselines3.common.policies import ActorCriticPolicy, BaseModel, BasePolicy
 from stable_baselines3.common.preprocessing import get_flattened_obs_dim
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, FlattenExtractor, create_mlp
-from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
+from stable_baselines3.common.type_aliases import GymEnv, PyTorchObs, Schedule
 from stable_baselines3.common.vec_env import VecEnv
 from stable_baselines3.sac.policies import Actor as SACActor
 from stable_baselines3.sac.policies import SACPolicy
@@ -20,7 +20,7 @@ from stable_baselines3.td3.policies import Actor as TD3Actor
 from stable_baselines3.td3.policies import TD3Policy
 from torch import nn
 
-from sb3_sera.ctde.env import STATE_KEY
+from sb3_sera.ctde.env import STATE_KEY, CTDEEnv
 from sb3_sera.sera.policies import SERAPolicy
 
 
@@ -54,6 +54,65 @@ def fill_agent_layout(model: BaseAlgorithm) -> None:
             raise ValueError("A CTDE policy needs an env, or policy_kwargs=dict(agent_action_dims=...)")
         # A new dict: the user's policy_kwargs may serve other models too
         model.policy_kwargs = {**policy_kwargs, "agent_action_dims": agent_action_dims_of(model.env)}
+
+
+@overload
+def make_env_for_policy(
+    algorithm_class: type[BaseAlgorithm], policy: str | type[BasePolicy], env: GymEnv | str, verbose: int = 0
+) -> GymEnv: ...
+
+
+@overload
+def make_env_for_policy(
+    algorithm_class: type[BaseAlgorithm], policy: str | type[BasePolicy], env: None, verbose: int = 0
+) -> None: ...
+
+
+def make_env_for_policy(
+    algorithm_class: type[BaseAlgorithm], policy: str | type[BasePolicy], env: GymEnv | str | None, verbose: int = 0
+) -> GymEnv | None:
+    """
+    ``env`` made as SB3 makes it (an id becomes ``gym.make(id, render_mode="rgb_array")``), after checking that a
+    CTDE env gets a CTDE policy.
+
+    On a :class:`~sb3_sera.ctde.env.CTDEEnv`, SB3 would answer ``"MlpPolicy"`` with advice to use
+    ``"MultiInputPolicy"``, which builds one actor reading every agent's observation and the state: a model that
+    trains, but cannot act decentrally. Both raise ``ValueError`` instead, naming ``"CTDEPolicy"``. A CTDEEnv whose
+    observation was flattened (``gymnasium.wrappers.FlattenObservation``) is an ordinary env and takes any policy.
+
+    :param algorithm_class: the algorithm being built (its ``policy_aliases`` resolve ``policy``)
+    :param policy: the policy alias or class
+    :param env: the env, its Gymnasium id, or None
+    :param verbose: SB3's verbosity (1 prints that the env is made from its id)
+    """
+    if env is None:
+        return None
+    env = maybe_make_env(env, verbose)
+    policy_class = algorithm_class.policy_aliases.get(policy) if isinstance(policy, str) else policy
+    if policy_class is None or is_ctde_policy(policy_class) or not _gives_ctde_observations(env):
+        # An unknown alias gets SB3's own error
+        return env
+    name = policy if isinstance(policy, str) else policy.__name__
+    raise ValueError(
+        f"{algorithm_class.__name__} on a CTDE env needs policy='CTDEPolicy' (one actor per agent on its own "
+        f"observation, centralized critics on the state), not {name!r}: {name!r} would build one actor that reads every "
+        "agent's observation and the state, a model that cannot act decentrally. To train such a centralized policy on "
+        "purpose, flatten the observation first (gymnasium.wrappers.FlattenObservation)."
+    )
+
+
+def _gives_ctde_observations(env: GymEnv) -> bool:
+    """Whether ``env`` (a Gymnasium env or a VecEnv) is a CTDEEnv whose Dict observations reach the policy."""
+    observation_space = env.observation_space
+    if not isinstance(observation_space, spaces.Dict) or STATE_KEY not in observation_space.spaces:
+        return False
+    if isinstance(env, VecEnv):
+        try:
+            env.get_attr("action_slices", indices=[0])
+        except AttributeError:
+            return False
+        return True
+    return isinstance(env.unwrapped, CTDEEnv)
 
 
 def check_layout(observation_space: spaces.Space, action_space: spaces.Space, agent_action_dims: dict[str, int]) -> None:

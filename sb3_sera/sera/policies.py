@@ -18,6 +18,8 @@ from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from stable_baselines3.sac.policies import SACPolicy
 from torch import nn
 
+from sb3_sera.common.checks import check_int
+
 #: Hidden layers of the paper's heterogeneous critics (Table 4); critic ``i`` uses ``CRITIC_ARCHS[i % 5]``.
 CRITIC_ARCHS: tuple[tuple[int, ...], ...] = (
     (256, 256),
@@ -35,6 +37,22 @@ def default_critic_archs(n_critics: int) -> list[list[int]]:
     return [list(CRITIC_ARCHS[idx % len(CRITIC_ARCHS)]) for idx in range(n_critics)]
 
 
+def check_n_critics(n_critics: int) -> int:
+    """
+    Raise ``ValueError`` unless ``n_critics`` is an integer >= 2, saying why.
+
+    :return: ``n_critics`` as a Python int
+    """
+    return check_int(
+        "n_critics",
+        n_critics,
+        2,
+        reason="SERA aggregates an ensemble: with one critic there is no median anchor among critics, no reliability "
+        "weight and no deviation to adapt a step size to. For a single critic use SB3's SAC(policy_kwargs="
+        "dict(n_critics=1))",
+    )
+
+
 def check_critic_archs(critic_archs: list[list[int]], n_critics: int) -> None:
     """
     Raise ``ValueError`` unless ``critic_archs`` gives one list of positive layer sizes per critic.
@@ -42,8 +60,6 @@ def check_critic_archs(critic_archs: list[list[int]], n_critics: int) -> None:
     :param critic_archs: hidden layer sizes, one list per critic
     :param n_critics: the number of critics
     """
-    if n_critics < 2:
-        raise ValueError(f"n_critics={n_critics} is out of range: an ensemble needs n_critics >= 2")
     if len(critic_archs) != n_critics:
         raise ValueError(
             f"critic_archs has {len(critic_archs)} entries but n_critics={n_critics}: give one list of hidden "
@@ -182,8 +198,9 @@ class SERAPolicy(SACPolicy):
     :param features_extractor_kwargs: Keyword arguments to pass to the features extractor.
     :param normalize_images: Whether to normalize images or not, dividing by 255.0
     :param optimizer_class: The optimizer to use, ``th.optim.Adam`` by default
-    :param optimizer_kwargs: Additional keyword arguments, excluding the learning rate, to pass to the optimizer
-        (None: ``{"fused": True}`` for Adam and AdamW)
+    :param optimizer_kwargs: Additional keyword arguments, excluding the learning rate, to pass to the actor's and
+        the critics' optimizers (None: ``{"fused": True}`` for Adam and AdamW, where SB3 uses its unfused default;
+        ``{}`` gives SB3's Adam)
     :param n_critics: Number of critics, at least 2 (default 5, as in the paper)
     :param critic_archs: Hidden layer sizes of each critic (``n_critics`` lists), overrides ``net_arch``
     :param share_features_extractor: Whether to share the features extractor between the actor and the critics
@@ -212,6 +229,7 @@ class SERAPolicy(SACPolicy):
         critic_archs: list[list[int]] | None = None,
         share_features_extractor: bool = False,
     ):
+        n_critics = check_n_critics(n_critics)
         if isinstance(net_arch, dict) and "qf" not in net_arch:
             # Only the actor is specified: the critics keep their own architectures
             net_arch = {**net_arch, "qf": []}

@@ -1,5 +1,6 @@
-"""SERASAC: Soft Actor-Critic with a Soft Ensemble Reliability Aggregation critic (SPEC section 1)."""
+"""SERASAC: Soft Actor-Critic with a Soft Ensemble Reliability Aggregation critic (docs/SPEC.md, section 1)."""
 
+import warnings
 from collections.abc import Callable
 from typing import Any, ClassVar, NamedTuple, TypeVar
 
@@ -12,7 +13,7 @@ from stable_baselines3.common.utils import FloatSchedule, polyak_update
 from stable_baselines3.sac import SAC
 
 from sb3_sera.common.checks import check_choice, check_int, check_range
-from sb3_sera.ctde.policies import SERACTDEPolicy, fill_agent_layout
+from sb3_sera.ctde.policies import SERACTDEPolicy, fill_agent_layout, make_env_for_policy
 from sb3_sera.sera.aggregation import (
     ACTOR_AGGREGATIONS,
     TARGET_AGGREGATIONS,
@@ -30,6 +31,11 @@ from sb3_sera.sera.policies import CnnPolicy, EnsembleCritic, MlpPolicy, MultiIn
 from sb3_sera.sera.step_size import StepSizeUpdate, VarianceAdaptiveStepSize, batch_variance
 
 SelfSERASAC = TypeVar("SelfSERASAC", bound="SERASAC")
+
+#: Learning rate of the actor and the entropy coefficient, as SB3's SAC
+DEFAULT_LEARNING_RATE = 3e-4
+#: Critic learning rate at full gain ``kappa = 1`` (paper appendix B.1.4)
+DEFAULT_CRITIC_LR_MAX = 5e-4
 
 
 class CriticUpdate(NamedTuple):
@@ -57,7 +63,7 @@ class SERASAC(SAC):
     ``n_critics`` heterogeneous critics (policy kwarg, default 5) whose target is the median-anchored soft
     reliability aggregate, each critic trained with its own variance-adaptive learning rate, a median actor and
     a disagreement-adjusted entropy target. Paper: "SERA: Soft Ensemble Reliability Aggregation for Robust
-    Multi-Agent Reinforcement Learning"; every choice it leaves open is fixed in the project's SPEC.
+    Multi-Agent Reinforcement Learning"; every choice it leaves open is fixed in the project's ``docs/SPEC.md``.
 
     With ``policy_kwargs=dict(n_critics=2, net_arch=[256, 256])``, ``target_aggregation="min"``,
     ``adaptive_critic_lr=False``, ``disagreement_coef=0`` and ``actor_aggregation="min"`` it computes the same
@@ -65,9 +71,10 @@ class SERASAC(SAC):
 
     :param policy: The policy model to use (MlpPolicy, CnnPolicy, MultiInputPolicy)
     :param env: The environment to learn from (if registered in Gym, can be str)
-    :param learning_rate: learning rate of Adam for the actor and the entropy coefficient (and the critics when
-        ``adaptive_critic_lr=False`` and ``critic_learning_rate`` is None); a float > 0 or a schedule of the
-        progress remaining (from 1 to 0)
+    :param learning_rate: learning rate of Adam for the actor and the entropy coefficient, and for the critics
+        only when ``adaptive_critic_lr=False`` and ``critic_learning_rate`` is None (with the adaptive step size
+        the critics' rates come from ``critic_lr_max``; setting ``learning_rate`` alone warns); a float > 0 or a
+        schedule of the progress remaining (from 1 to 0)
     :param buffer_size: size of the replay buffer
     :param learning_starts: how many steps of the model to collect transitions for before learning starts
     :param batch_size: Minibatch size ``S`` for each gradient update
@@ -81,7 +88,9 @@ class SERASAC(SAC):
     :param optimize_memory_usage: Enable a memory efficient variant of the replay buffer
     :param n_steps: n-step returns (SB3's ``NStepReplayBuffer``) when > 1
     :param ent_coef: Entropy regularization coefficient: a float > 0, ``"auto"`` or ``"auto_<init>"``
-    :param target_update_interval: update the target critics every ``target_update_interval`` gradient steps
+    :param target_update_interval: update the target critics every ``target_update_interval`` gradient steps,
+        counted across ``train()`` calls (SB3's SAC counts within each call, so that with ``gradient_steps=1`` its
+        targets follow every step whatever the interval)
     :param target_entropy: target entropy ``H_target`` when learning ``ent_coef`` (``"auto"``: ``-dim(A)``)
     :param use_sde: Whether to use generalized State Dependent Exploration (gSDE)
     :param sde_sample_freq: Sample a new noise matrix every n steps when using gSDE (-1: once per rollout)
@@ -97,7 +106,8 @@ class SERASAC(SAC):
     :param actor_aggregation: how the online critics' values at the actor's actions are reduced for the actor
         loss: ``"median"`` (paper), ``"mean"`` or ``"min"``
     :param adaptive_critic_lr: use the variance-adaptive per-critic learning rate (False: *SERA-NoLR*)
-    :param critic_lr_max: critic learning rate at full gain ``kappa = 1``, > 0
+    :param critic_lr_max: critic learning rate at full gain ``kappa = 1``: a float > 0 or a schedule of the
+        progress remaining; None: 5e-4 (paper appendix B.1.4)
     :param kappa_min: floor of the rescaled gain, in [0, 1]; critic rates lie in
         ``[kappa_min * critic_lr_max, critic_lr_max]``
     :param kappa_eps: ``eta`` in ``kappa = P / (P + R + eta)``, > 0
@@ -162,7 +172,7 @@ class SERASAC(SAC):
         sera_include_median: bool = False,
         actor_aggregation: ActorAggregation = "median",
         adaptive_critic_lr: bool = True,
-        critic_lr_max: float = 5e-4,
+        critic_lr_max: float | Schedule | None = None,
         kappa_min: float = 0.2,
         kappa_eps: float = 1e-8,
         td_variance_ema: float = 0.9,
@@ -192,7 +202,7 @@ class SERASAC(SAC):
         self.critic_learning_rate = critic_learning_rate
         self.disagreement_coef = disagreement_coef
         self.compile_update = compile_update
-        _check_sac_hyperparameters(
+        sac_hyperparameters = _check_sac_hyperparameters(
             learning_rate=learning_rate,
             buffer_size=buffer_size,
             learning_starts=learning_starts,
@@ -205,24 +215,27 @@ class SERASAC(SAC):
             target_update_interval=target_update_interval,
         )
         self._check_sera_hyperparameters()
+        if self.adaptive_critic_lr and self.critic_lr_max is None and learning_rate != DEFAULT_LEARNING_RATE:
+            rates = f"[{self.kappa_min * DEFAULT_CRITIC_LR_MAX:g}, {DEFAULT_CRITIC_LR_MAX:g}]"
+            warnings.warn(
+                f"SERASAC: learning_rate={sac_hyperparameters['learning_rate']!r} sets the learning rate of the actor "
+                "and of the entropy coefficient only. With adaptive_critic_lr=True the critics learn at critic_lr_max * "
+                f"(kappa_min + (1 - kappa_min) * kappa), in {rates} with the default critic_lr_max="
+                f"{DEFAULT_CRITIC_LR_MAX:g}. Pass critic_lr_max (a float or a schedule) to set the critics' rate as "
+                "well, or adaptive_critic_lr=False to train them at learning_rate.",
+                UserWarning,
+                stacklevel=2,
+            )
+        env = make_env_for_policy(type(self), policy, env, verbose)
         super().__init__(
             policy,
             env,
-            learning_rate=learning_rate,
-            buffer_size=buffer_size,
-            learning_starts=learning_starts,
-            batch_size=batch_size,
-            tau=tau,
-            gamma=gamma,
+            **sac_hyperparameters,
             train_freq=train_freq,
-            gradient_steps=gradient_steps,
             action_noise=action_noise,
             replay_buffer_class=replay_buffer_class,
             replay_buffer_kwargs=replay_buffer_kwargs,
             optimize_memory_usage=optimize_memory_usage,
-            n_steps=n_steps,
-            ent_coef=ent_coef,
-            target_update_interval=target_update_interval,
             target_entropy=target_entropy,
             use_sde=use_sde,
             sde_sample_freq=sde_sample_freq,
@@ -237,22 +250,28 @@ class SERASAC(SAC):
         )
 
     def _check_sera_hyperparameters(self) -> None:
+        """Raise ``ValueError`` for a SERA hyperparameter outside its range; store numbers as Python floats."""
         check_choice("target_aggregation", self.target_aggregation, TARGET_AGGREGATIONS)
         check_choice("actor_aggregation", self.actor_aggregation, ACTOR_AGGREGATIONS)
         check_choice("sera_temperature_mode", self.sera_temperature_mode, TEMPERATURE_MODES)
         check_choice("sera_include_median", self.sera_include_median, (True, False))
         check_choice("adaptive_critic_lr", self.adaptive_critic_lr, (True, False))
         check_choice("compile_update", self.compile_update, (True, False))
-        check_range("sera_alpha", self.sera_alpha, 0.0, 1.0)
-        check_range("sera_temperature", self.sera_temperature, 0.0, None, low_inclusive=False)
-        check_range("critic_lr_max", self.critic_lr_max, 0.0, None, low_inclusive=False)
-        check_range("kappa_min", self.kappa_min, 0.0, 1.0)
-        check_range("kappa_eps", self.kappa_eps, 0.0, None, low_inclusive=False)
-        check_range("td_variance_ema", self.td_variance_ema, 0.0, 1.0, high_inclusive=False)
-        check_range("estimation_variance_ema", self.estimation_variance_ema, 0.0, 1.0, high_inclusive=False)
-        check_range("disagreement_coef", self.disagreement_coef, 0.0, None)
+        self.sera_alpha = check_range("sera_alpha", self.sera_alpha, 0.0, 1.0)
+        self.sera_temperature = check_range("sera_temperature", self.sera_temperature, 0.0, None, low_inclusive=False)
+        self.kappa_min = check_range("kappa_min", self.kappa_min, 0.0, 1.0)
+        self.kappa_eps = check_range("kappa_eps", self.kappa_eps, 0.0, None, low_inclusive=False)
+        self.td_variance_ema = check_range("td_variance_ema", self.td_variance_ema, 0.0, 1.0, high_inclusive=False)
+        self.estimation_variance_ema = check_range(
+            "estimation_variance_ema", self.estimation_variance_ema, 0.0, 1.0, high_inclusive=False
+        )
+        self.disagreement_coef = check_range("disagreement_coef", self.disagreement_coef, 0.0, None)
+        if self.critic_lr_max is not None and not callable(self.critic_lr_max):
+            self.critic_lr_max = check_range("critic_lr_max", self.critic_lr_max, 0.0, None, low_inclusive=False)
         if self.critic_learning_rate is not None and not callable(self.critic_learning_rate):
-            check_range("critic_learning_rate", self.critic_learning_rate, 0.0, None, low_inclusive=False)
+            self.critic_learning_rate = check_range(
+                "critic_learning_rate", self.critic_learning_rate, 0.0, None, low_inclusive=False
+            )
 
     def _setup_model(self) -> None:
         fill_agent_layout(self)
@@ -260,12 +279,15 @@ class SERASAC(SAC):
         self.critic_lr_schedule = FloatSchedule(
             self.learning_rate if self.critic_learning_rate is None else self.critic_learning_rate
         )
+        self.critic_lr_max_schedule = FloatSchedule(
+            DEFAULT_CRITIC_LR_MAX if self.critic_lr_max is None else self.critic_lr_max
+        )
         self.step_size = VarianceAdaptiveStepSize(
             self.critic.n_critics,
             td_variance_ema=self.td_variance_ema,
             estimation_variance_ema=self.estimation_variance_ema,
             kappa_eps=self.kappa_eps,
-            lr_max=self.critic_lr_max,
+            lr_max=self.critic_lr_max_schedule(1.0),
             kappa_min=self.kappa_min,
         ).to(self.device)
         self._actor_parameters: list[th.Tensor] = list(self.actor.parameters())
@@ -353,6 +375,11 @@ class SERASAC(SAC):
             optimizers.append(self.ent_coef_optimizer)
         self._update_learning_rate(optimizers)
         critic_rates = self._update_critic_learning_rates(None)
+        self.step_size.set_lr_max(self.critic_lr_max_schedule(self._current_progress_remaining))
+        if gradient_steps == 0:
+            # Nothing to train (SB3's SAC accepts it too): no loss or diagnostic to log
+            self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+            return
 
         ent_coef_losses: list[th.Tensor] = []
         ent_coefs: list[th.Tensor] = []
@@ -439,8 +466,9 @@ class SERASAC(SAC):
             self.actor.optimizer.step()
             actor_losses.append(actor_loss.detach())
 
-            # Update target networks
-            if gradient_step % self.target_update_interval == 0:
+            # Update target networks every target_update_interval gradient steps, counted across train() calls
+            # (SB3's SAC restarts its count at each call, so with gradient_steps=1 it updates at every step)
+            if (self._n_updates + gradient_step) % self.target_update_interval == 0:
                 with th.no_grad():
                     th._foreach_mul_(self._critic_target_parameters, 1.0 - self.tau)
                     th._foreach_add_(self._critic_target_parameters, self._critic_parameters, alpha=self.tau)
@@ -529,6 +557,7 @@ class SERASAC(SAC):
             *super()._excluded_save_params(),
             "step_size",
             "critic_lr_schedule",
+            "critic_lr_max_schedule",
             "_actor_parameters",
             "_critic_parameters",
             "_critic_target_parameters",
@@ -551,19 +580,27 @@ def _check_sac_hyperparameters(
     n_steps: int,
     ent_coef: str | float,
     target_update_interval: int,
-) -> None:
-    """Raise ``ValueError`` for a SAC hyperparameter outside its range, naming it, its value and the range."""
-    if not callable(learning_rate):
-        check_range("learning_rate", learning_rate, 0.0, None, low_inclusive=False)
-    check_int("buffer_size", buffer_size, 1)
-    check_int("learning_starts", learning_starts, 0)
-    check_int("batch_size", batch_size, 1)
-    check_range("tau", tau, 0.0, 1.0)
-    check_range("gamma", gamma, 0.0, 1.0)
-    if gradient_steps != -1:
-        check_int("gradient_steps", gradient_steps, 0)
-    check_int("n_steps", n_steps, 1)
-    check_int("target_update_interval", target_update_interval, 1)
+) -> dict[str, Any]:
+    """
+    Raise ``ValueError`` for a SAC hyperparameter outside its range, naming it, its value and the range.
+
+    :return: the hyperparameters by name, numbers as Python ``int`` and ``float`` (numpy scalars and integral floats
+        such as ``learning_starts=1e4`` are accepted, as SB3 accepts them)
+    """
+    checked: dict[str, Any] = dict(
+        learning_rate=learning_rate
+        if callable(learning_rate)
+        else check_range("learning_rate", learning_rate, 0.0, None, low_inclusive=False),
+        buffer_size=check_int("buffer_size", buffer_size, 1),
+        learning_starts=check_int("learning_starts", learning_starts, 0),
+        batch_size=check_int("batch_size", batch_size, 1),
+        tau=check_range("tau", tau, 0.0, 1.0),
+        gamma=check_range("gamma", gamma, 0.0, 1.0),
+        gradient_steps=-1 if gradient_steps == -1 else check_int("gradient_steps", gradient_steps, 0),
+        n_steps=check_int("n_steps", n_steps, 1),
+        target_update_interval=check_int("target_update_interval", target_update_interval, 1),
+        ent_coef=ent_coef,
+    )
     if isinstance(ent_coef, str):
         valid = ent_coef == "auto"
         if ent_coef.startswith("auto_"):
@@ -574,4 +611,5 @@ def _check_sac_hyperparameters(
         if not valid:
             raise ValueError(f"ent_coef={ent_coef!r} is invalid: expected a number > 0, 'auto' or 'auto_<initial value > 0>'")
     else:
-        check_range("ent_coef", ent_coef, 0.0, None, low_inclusive=False)
+        checked["ent_coef"] = check_range("ent_coef", ent_coef, 0.0, None, low_inclusive=False)
+    return checked

@@ -1,5 +1,5 @@
 """
-Variance-adaptive critic step size of SERA (paper section 4.2, appendix B.1.4, SPEC section 1 step 6).
+Variance-adaptive critic step size of SERA (paper section 4.2, appendix B.1.4, docs/SPEC.md section 1 step 6).
 
 Each critic ``i`` gets the Kalman-like gain ``kappa_i = P_i / (P_i + R_i + eta)`` from two batch variances,
 and its learning rate ``lr_i = lr_max * (kappa_min + (1 - kappa_min) * kappa_i)``. The rate is applied as the
@@ -47,14 +47,14 @@ def kalman_gain(estimation_var: th.Tensor, measurement_var: th.Tensor, eps: floa
     return estimation_var / (estimation_var + measurement_var + eps)
 
 
-def critic_learning_rates(kappa: th.Tensor, lr_max: float = 5e-4, kappa_min: float = 0.2) -> th.Tensor:
+def critic_learning_rates(kappa: th.Tensor, lr_max: float | th.Tensor = 5e-4, kappa_min: float = 0.2) -> th.Tensor:
     """
     Map gains to learning rates ``lr_max * (kappa_min + (1 - kappa_min) * kappa)`` (paper eq. 16).
 
     With the defaults, rates lie in ``[1e-4, 5e-4]``.
 
     :param kappa: gains in ``[0, 1]``
-    :param lr_max: the learning rate at ``kappa = 1``
+    :param lr_max: the learning rate at ``kappa = 1`` (a float or a scalar tensor)
     :param kappa_min: the floor of the rescaled gain, in ``[0, 1]``
     """
     return lr_max * (kappa_min + (1.0 - kappa_min) * kappa)
@@ -81,6 +81,8 @@ class VarianceAdaptiveStepSize(nn.Module):
 
     The state lives in buffers, so it is saved and loaded with the model and training continues from it.
     :meth:`compute` is side-effect free; :meth:`commit` stores its result (after the caller checked it is finite).
+    ``lr_max`` is a buffer too, not saved: the algorithm sets it from its schedule (:meth:`set_lr_max`), and a
+    compiled update reads the new value without recompiling.
 
     :param n_critics: number of critics
     :param td_variance_ema: ``b_v``, weight of the past in the TD-residual variance EMA, in ``[0, 1)``
@@ -93,6 +95,7 @@ class VarianceAdaptiveStepSize(nn.Module):
     td_error_var: th.Tensor
     estimation_var: th.Tensor
     initialized: th.Tensor
+    lr_max: th.Tensor
 
     def __init__(
         self,
@@ -107,11 +110,15 @@ class VarianceAdaptiveStepSize(nn.Module):
         self.td_variance_ema = td_variance_ema
         self.estimation_variance_ema = estimation_variance_ema
         self.kappa_eps = kappa_eps
-        self.lr_max = lr_max
         self.kappa_min = kappa_min
         self.register_buffer("td_error_var", th.zeros(n_critics))
         self.register_buffer("estimation_var", th.zeros(n_critics))
         self.register_buffer("initialized", th.tensor(False))
+        self.register_buffer("lr_max", th.tensor(float(lr_max)), persistent=False)
+
+    def set_lr_max(self, lr_max: float) -> None:
+        """Set the critic learning rate at full gain (the value of the algorithm's schedule)."""
+        self.lr_max.fill_(lr_max)
 
     def compute(self, td_errors: th.Tensor, target_deviations: th.Tensor) -> StepSizeUpdate:
         """
