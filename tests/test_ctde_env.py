@@ -1,16 +1,23 @@
-"""The CTDE env layer on the paper's five tasks: spaces, episodes, truncation, falls, action layout, bad input."""
+"""The CTDE env layer on the paper's tasks: spaces, episodes, truncation, falls, action layout, API checks, rendering."""
+
+import os
+import subprocess
+import sys
 
 import gymnasium as gym
 import numpy as np
 import pytest
 from gymnasium import spaces
 from gymnasium.utils.env_checker import check_env as gym_check_env
+from gymnasium.utils.env_checker import data_equivalence
+from pettingzoo.test import parallel_api_test, parallel_seed_test
 from pettingzoo.utils.env import ParallelEnv
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
 import sb3_sera  # noqa: F401  (registers the ids)
-from sb3_sera.ctde import CTDEEnv, make_mamujoco
+from sb3_sera.ctde import CTDEEnv, make_mamujoco, mamujoco_parallel_env
 from sb3_sera.ctde.env import STATE_KEY
+from sb3_sera.ctde.tasks import TASKS as REGISTERED_TASKS
 
 # id -> (agents, per-agent action size, state size, joint action bounds, episode limit)
 TASKS = {
@@ -20,6 +27,10 @@ TASKS = {
     "sb3_sera/Multiwalker-v0": ([f"walker_{i}" for i in range(3)], [4] * 3, 75, 1.0, 500),
     "sb3_sera/SimpleSpread-v0": ([f"agent_{i}" for i in range(3)], [5] * 3, 54, None, 25),
 }
+
+
+# Every id `import sb3_sera` registers
+REGISTERED = list(REGISTERED_TASKS)
 
 
 def run_episode(env: gym.Env, seed: int = 0, action_fn=None) -> tuple[int, bool, bool, list[dict]]:
@@ -62,11 +73,78 @@ def test_task_spaces_and_a_whole_episode(env_id):
     assert set(infos[0]["agent_rewards"]) <= set(agents)
 
 
-def test_env_checkers_pass():
-    for env_id in TASKS:
-        env = gym.make(env_id).unwrapped
-        gym_check_env(env, skip_render_check=True)
-        sb3_check_env(env, warn=False)
+@pytest.mark.parametrize("env_id", REGISTERED)
+def test_env_checkers_and_same_seed_determinism(env_id):
+    # Gymnasium's render check makes an env for every declared mode, "human" included, which needs a display:
+    # rendering is checked on its own below
+    env = gym.make(env_id).unwrapped
+    gym_check_env(env, skip_render_check=True)
+    sb3_check_env(env, warn=False)
+    runs = []
+    for _ in range(2):
+        env = gym.make(env_id)
+        env.action_space.seed(3)
+        observation, _ = env.reset(seed=3)
+        run = [observation]
+        for _ in range(30):
+            observation, reward, terminated, truncated, _ = env.step(env.action_space.sample())
+            run.append((observation, reward, terminated, truncated))
+            if terminated or truncated:
+                break
+        runs.append(run)
+    assert data_equivalence(runs[0], runs[1], exact=True)
+
+
+@pytest.mark.parametrize("agent_indicator", [False, True])
+@pytest.mark.parametrize("env_id", REGISTERED)
+def test_pettingzoo_api_and_seed_tests_on_every_builder(env_id, agent_indicator):
+    def parallel_env() -> ParallelEnv:
+        # The PettingZoo env the builder made (with SuperSuit's wrappers when agent_indicator=True)
+        return gym.make(env_id, agent_indicator=agent_indicator).unwrapped.env
+
+    parallel_api_test(parallel_env(), num_cycles=50)
+    parallel_seed_test(parallel_env, num_cycles=20)
+
+
+def test_pusher_observation_layout_is_the_same_in_every_instance():
+    # gymnasium-robotics 1.4.2 labels three Pusher joints alike and orders an agent's joints by label: equally
+    # labelled joints came in an order that changed from one env instance to the next
+    observations = []
+    for _ in range(6):
+        env = mamujoco_parallel_env("Pusher", "3p")
+        env.reset(seed=0)
+        observation, *_ = env.step({agent: np.full(env.action_space(agent).shape, 0.5) for agent in env.agents})
+        observations.append(observation)
+    for observation in observations[1:]:
+        assert data_equivalence(observation, observations[0], exact=True)
+
+
+def test_every_registered_id_renders_a_frame(tmp_path):
+    # In a process of its own: MuJoCo picks its OpenGL backend (MUJOCO_GL) once, on first use
+    script = (
+        "import gymnasium as gym, numpy as np, sb3_sera\n"
+        "for env_id in sb3_sera.ctde.tasks.TASKS:\n"
+        "    env = gym.make(env_id, render_mode='rgb_array')\n"
+        "    env.reset(seed=0)\n"
+        "    frame = env.render()\n"
+        "    assert env.unwrapped.render_mode == 'rgb_array' and env.metadata['render_fps'] > 0, env_id\n"
+        "    assert isinstance(frame, np.ndarray) and frame.ndim == 3 and frame.shape[2] == 3, env_id\n"
+        "    assert frame.std() > 0, env_id\n"
+        "    print(env_id, frame.shape)\n"
+    )
+    completed = subprocess.run(
+        [sys.executable, "-c", script],
+        cwd=tmp_path,
+        env={**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")},
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert completed.returncode == 0, completed.stderr[-3000:]
+    assert completed.stdout.count("(") == len(REGISTERED)
+    # Nor did the builders leave MuJoCo's log file in the working directory or print gymnasium-robotics' notice
+    assert not (tmp_path / "MUJOCO_LOG.TXT").exists()
+    assert "Adroit" not in completed.stderr
 
 
 @pytest.mark.parametrize(

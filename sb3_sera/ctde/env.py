@@ -1,5 +1,6 @@
 """
-A cooperative PettingZoo parallel env as one Gymnasium env that SB3 algorithms train unchanged (SPEC section 2).
+A cooperative PettingZoo parallel env as one Gymnasium env that SB3 algorithms train unchanged (docs/SPEC.md,
+section 2).
 
 - observation: ``Dict({"state": Box(S), "<agent>": Box(o_agent), ...})``, float32; ``state`` is the env's
   ``state()`` where it has one, else the concatenation of the agents' observations;
@@ -8,7 +9,8 @@ A cooperative PettingZoo parallel env as one Gymnasium env that SB3 algorithms t
   per-agent rewards in ``info["agent_rewards"]``;
 - episode end: time limits are truncation, never termination; an agent that leaves early gets its final
   observation at the step it leaves, a zero observation after that, and its actions are ignored while the
-  episode goes on as the env says.
+  episode goes on as the env says;
+- rendering: the env's ``render_mode`` and ``render()`` (MaMuJoCo's, which it keeps on its single-agent MuJoCo env).
 """
 
 import copy
@@ -100,8 +102,7 @@ class CTDEEnv(gym.Env):
         self.has_state = callable(getattr(env, "state", None))
         state_space = self._state_space()
         self.observation_space = spaces.Dict({STATE_KEY: state_space, **observation_spaces})
-        self.render_mode = getattr(env, "render_mode", None)
-        self.metadata = {"render_modes": [], **getattr(env, "metadata", {})}
+        self.render_mode, self.metadata = _render_settings(env)
         self._steps = 0
         self._last_state = np.zeros(state_space.shape, dtype=np.float32)
         self._state_readable = True
@@ -206,6 +207,21 @@ class CTDEEnv(gym.Env):
 
     def close(self) -> None:
         self.env.close()
+
+
+def _render_settings(env: ParallelEnv) -> tuple[str | None, dict[str, Any]]:
+    """
+    The render mode of ``env`` and its metadata (render modes and frame rate). MaMuJoCo keeps its render mode and
+    frame rate on the single-agent MuJoCo env it splits (``single_agent_env``), not on the parallel env.
+    """
+    render_mode = getattr(env, "render_mode", None)
+    metadata: dict[str, Any] = {"render_modes": [], **getattr(env, "metadata", {})}
+    inner = getattr(env.unwrapped, "single_agent_env", None)
+    if isinstance(inner, gym.Env):
+        render_mode = render_mode or inner.render_mode
+        if "render_fps" in inner.metadata:
+            metadata.setdefault("render_fps", inner.metadata["render_fps"])
+    return render_mode, metadata
 
 
 def with_agent_indicator(env: ParallelEnv) -> ParallelEnv:

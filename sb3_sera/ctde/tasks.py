@@ -14,12 +14,23 @@ id                               task
 
 Every builder takes ``reward_mode``, ``agent_indicator`` (pad the observations and append a one-hot agent
 indicator with SuperSuit, for ``share_actor=True``) and passes other keyword arguments to the PettingZoo
-constructor.
+constructor (``render_mode="rgb_array"`` included: every id renders, MaMuJoCo with ``MUJOCO_GL=egl`` headless).
+
+The MaMuJoCo builder keeps two messages of its dependencies out of the way: the notice gymnasium-robotics prints
+to stderr on import (about reward changes of its Adroit hand envs, which none of these tasks uses), and MuJoCo's
+copy of its model-compiler warnings in ``MUJOCO_LOG.TXT`` of the working directory (MuJoCo 4 warns, on the console
+too, that the HalfCheetah model's ``settotalmass`` attribute is deprecated).
 """
 
+import contextlib
+import sys
+from collections.abc import Iterator
+from types import ModuleType
 from typing import Any
 
 import gymnasium as gym
+import numpy as np
+from pettingzoo.utils.env import ParallelEnv
 
 from sb3_sera.ctde.env import CTDEEnv, RewardMode
 
@@ -44,6 +55,72 @@ def _layouts() -> str:
     return "; ".join(f"{scenario}: {', '.join(confs)}" for scenario, confs in MAMUJOCO_LAYOUTS.items())
 
 
+def _mamujoco_v1() -> ModuleType:
+    """``gymnasium_robotics.mamujoco_v1``, imported without gymnasium-robotics' notice about its Adroit hand envs."""
+    if "gymnasium_robotics" not in sys.modules:
+        from farama_notifications import notifications
+
+        notices = notifications.get("gymnasium_robotics", {})
+        for version in [version for version, text in notices.items() if "AdroitHand" in text]:
+            del notices[version]
+    from gymnasium_robotics import mamujoco_v1
+
+    return mamujoco_v1
+
+
+@contextlib.contextmanager
+def _mujoco_log_to_console_only() -> Iterator[None]:
+    """MuJoCo's warnings go to the console only, not to ``MUJOCO_LOG.TXT`` in the working directory."""
+    import mujoco
+
+    saved = mujoco.MjLogConfig.get()
+    config = mujoco.MjLogConfig.get()
+    config.logto_file = False
+    config.set()
+    try:
+        yield
+    finally:
+        saved.set()
+
+
+def mamujoco_parallel_env(
+    scenario: str = "HalfCheetah", agent_conf: str | None = "6x1", agent_obsk: int = 1, **kwargs: Any
+) -> ParallelEnv:
+    """
+    A Gymnasium-Robotics MaMuJoCo task as the PettingZoo parallel env :func:`make_mamujoco` wraps: MaMuJoCo's own,
+    with the render mode where PettingZoo's API has it and the same observation layout in every instance. Build the
+    env of a decentralized deployment with it, so that each agent sees the layout it was trained on.
+
+    Two fixes to gymnasium-robotics 1.4.2: its ``render_mode`` lives on the single-agent MuJoCo env it splits, and its
+    Pusher labels three joints ``r_wrist_roll_joint``, so that agent observations, ordered by joint label, put the
+    equally labelled joints in an order that changes from one instance to the next; ties are broken by joint index.
+
+    :param scenario: MuJoCo robot, see :data:`MAMUJOCO_LAYOUTS`
+    :param agent_conf: how its joints are split between agents, see :data:`MAMUJOCO_LAYOUTS`
+    :param agent_obsk: how many graph hops away an agent observes other joints
+    :param kwargs: passed to ``gymnasium_robotics.mamujoco_v1.parallel_env`` (``render_mode``, ...)
+    """
+    try:
+        with _mujoco_log_to_console_only():
+            env = _mamujoco_v1().parallel_env(scenario, agent_conf, agent_obsk=agent_obsk, **kwargs)
+    except NotImplementedError as error:
+        raise ValueError(f"Unknown MaMuJoCo scenario {scenario!r}. Known scenarios and layouts: {_layouts()}") from error
+    except Exception as error:
+        if "partitioning" not in str(error):
+            raise
+        raise ValueError(
+            f"Unknown agent_conf {agent_conf!r} for MaMuJoCo {scenario}. Known scenarios and layouts: {_layouts()}"
+        ) from error
+    env.render_mode = env.single_agent_env.render_mode
+    env.k_dicts = [{distance: sorted(nodes, key=_joint_order) for distance, nodes in k_dict.items()} for k_dict in env.k_dicts]
+    return env
+
+
+def _joint_order(node: Any) -> tuple[str, list[int]]:
+    """MaMuJoCo's order of an agent's joints (by label), ties broken by the joint's position index."""
+    return node.label, [] if node.qpos_ids is None else np.atleast_1d(node.qpos_ids).tolist()
+
+
 def make_mamujoco(
     scenario: str = "HalfCheetah",
     agent_conf: str | None = "6x1",
@@ -62,18 +139,7 @@ def make_mamujoco(
     :param agent_indicator: pad observations and append a one-hot agent indicator (for actor sharing)
     :param kwargs: passed to ``gymnasium_robotics.mamujoco_v1.parallel_env``
     """
-    from gymnasium_robotics import mamujoco_v1
-
-    try:
-        env = mamujoco_v1.parallel_env(scenario, agent_conf, agent_obsk=agent_obsk, **kwargs)
-    except NotImplementedError as error:
-        raise ValueError(f"Unknown MaMuJoCo scenario {scenario!r}. Known scenarios and layouts: {_layouts()}") from error
-    except Exception as error:
-        if "partitioning" not in str(error):
-            raise
-        raise ValueError(
-            f"Unknown agent_conf {agent_conf!r} for MaMuJoCo {scenario}. Known scenarios and layouts: {_layouts()}"
-        ) from error
+    env = mamujoco_parallel_env(scenario, agent_conf, agent_obsk=agent_obsk, **kwargs)
     return CTDEEnv(env, reward_mode=reward_mode, agent_indicator=agent_indicator)
 
 
