@@ -1,13 +1,14 @@
 """SERASAC where SB3's own tests, an audit and new users found it differing from an SB3 algorithm (issue 10)."""
 
 import copy
+import inspect
 import warnings
 
 import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
-from stable_baselines3 import SAC
+from stable_baselines3 import DDPG, PPO, SAC, TD3
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_sera import MADDPG, MAPPO, MASAC, MATD3, SERASAC
@@ -187,3 +188,9 @@ def test_a_ctde_env_refuses_a_non_ctde_policy(algo, policy):
 def test_a_flattened_ctde_env_takes_an_ordinary_policy():
     model = SERASAC("MlpPolicy", gym.wrappers.FlattenObservation(gym.make("sb3_sera/SimpleSpread-v0")), **SMALL)
     assert model.observation_space.shape == (54 + 3 * 18,)
+
+
+@pytest.mark.parametrize(("algo", "base"), [(MASAC, SAC), (MATD3, TD3), (MADDPG, DDPG), (MAPPO, PPO)])
+def test_multi_agent_algorithms_keep_their_sb3_signature(algo, base):
+    # Their hyperparameter names are checked against it (rl-zoo3 files, bench grids)
+    assert inspect.signature(algo) == inspect.signature(base)

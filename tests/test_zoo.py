@@ -1,15 +1,19 @@
 """rl-zoo3 bridge: the zoo's own train / enjoy / optimize with this package's algorithms and hyperparameter files."""
 
 import inspect
+import os
+import pickle
 import subprocess
 import sys
 
+import gymnasium as gym
 import numpy as np
 import optuna
 import pytest
 import yaml
 
-from sb3_sera.experiments.zoo import HYPERPARAMS_DIR, ZOO_ALGOS, register_with_zoo, zoo_argv
+from sb3_sera import SERASAC
+from sb3_sera.experiments.zoo import HYPERPARAMS_DIR, ZOO_ALGOS, ZOO_OFF_POLICY_ALGOS, register_with_zoo, zoo_argv
 
 PAPER_TASKS = {
     "HalfCheetah-v5",
@@ -21,12 +25,20 @@ PAPER_TASKS = {
     "sb3_sera/Multiwalker-v0",
     "sb3_sera/SimpleSpread-v0",
 }
+# Every Gymnasium MuJoCo v5 task
+MUJOCO_V5_TASKS = {
+    env_id
+    for env_id, spec in gym.registry.items()
+    if isinstance(spec.entry_point, str) and spec.entry_point.startswith("gymnasium.envs.mujoco") and env_id.endswith("-v5")
+}
 # Keys rl-zoo3 reads itself rather than passing to the algorithm
 ZOO_KEYS = {"n_timesteps", "policy", "n_envs", "noise_type", "noise_std", "normalize", "env_wrapper", "frame_stack"}
 
 
-def sb3_sera(*args: str) -> subprocess.CompletedProcess:
-    completed = subprocess.run([sys.executable, "-m", "sb3_sera", *args], capture_output=True, text=True, timeout=600)
+def sb3_sera(*args: str, **env: str) -> subprocess.CompletedProcess:
+    completed = subprocess.run(
+        [sys.executable, "-m", "sb3_sera", *args], capture_output=True, text=True, timeout=600, env={**os.environ, **env}
+    )
     assert completed.returncode == 0, completed.stderr[-3000:]
     return completed
 
@@ -35,6 +47,7 @@ def sb3_sera(*args: str) -> subprocess.CompletedProcess:
 def test_hyperparameter_files_cover_the_paper_tasks(algo):
     entries = yaml.load((HYPERPARAMS_DIR / f"{algo}.yml").read_text(), Loader=yaml.UnsafeLoader)
     assert set(entries) >= PAPER_TASKS | {"Pendulum-v1"}
+    assert len(MUJOCO_V5_TASKS) == 11 and set(entries) >= MUJOCO_V5_TASKS
     accepted = set(inspect.signature(ZOO_ALGOS[algo]).parameters)
     for env_id, entry in entries.items():
         unknown = set(entry) - ZOO_KEYS - accepted
@@ -58,6 +71,30 @@ def test_zoo_tables_and_arguments():
     assert "-optimize" in zoo_argv("optimize", ["--algo", "serasac"])
     with pytest.raises(ValueError, match="Unknown zoo command 'fly'"):
         zoo_argv("fly", [])
+
+
+def test_enjoy_and_record_video_load_off_policy_models_with_a_one_transition_buffer(tmp_path):
+    from rl_zoo3 import utils
+
+    SERASAC("MlpPolicy", "Pendulum-v1", buffer_size=100_000).save(tmp_path / "model")
+    assert set(ZOO_OFF_POLICY_ALGOS) == {"serasac", "masac", "matd3", "maddpg"}
+    try:
+        register_with_zoo("enjoy")
+        loaded = utils.ALGOS["serasac"].load(tmp_path / "model")
+        assert isinstance(loaded, SERASAC) and loaded.replay_buffer.buffer_size == 1
+        assert utils.ALGOS["mappo"] is ZOO_ALGOS["mappo"]  # on-policy: no buffer
+    finally:
+        register_with_zoo()
+    assert all(utils.ALGOS[algo] is ZOO_ALGOS[algo] for algo in ZOO_ALGOS)
+
+
+def test_record_video_of_a_mamujoco_task(tmp_path):
+    folder = str(tmp_path)
+    sb3_sera("train", "--algo", "masac", "--env", "sb3_sera/Pusher-3p-v0", "-n", "100", "-f", folder, "--seed", "0")
+    videos = tmp_path / "videos"
+    args = ["--algo", "masac", "--env", "sb3_sera/Pusher-3p-v0", "-f", folder, "--exp-id", "1", "-n", "20", "-o", str(videos)]
+    sb3_sera("record-video", *args, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
+    assert [path.suffix for path in videos.iterdir()] == [".mp4"]
 
 
 def test_serasac_sampler_keeps_table_4_critics():
@@ -90,6 +127,19 @@ def test_train_then_enjoy_a_zoo_run(tmp_path):
     # The zoo's evaluations recorded the initial-state bias: three evaluations of two episodes
     bias = np.load(run / "initial_state_bias.npz")
     assert bias["timesteps"].tolist() == [100, 200, 300] and bias["values"].shape == (3, 2)
+    # rl-zoo3's plotting scripts (extra "plots") read the run folders, given the dashed folder name of an sb3_sera/ id
+    plots = [sys.executable, "-m", "rl_zoo3.plots.all_plots", "-a", "masac", "-f", folder, "--no-display", "-k", "results"]
+    completed = subprocess.run(
+        [*plots, "-e", "sb3_sera-SimpleSpread-v0", "-o", str(tmp_path / "curves")],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env={**os.environ, "MPLBACKEND": "Agg"},
+    )
+    assert completed.returncode == 0, completed.stderr[-3000:]
+    with open(tmp_path / "curves.pkl", "rb") as file:
+        curves = pickle.load(file)
+    assert list(curves["sb3_sera-SimpleSpread-v0"]) == [f"MASAC-{folder}"]
     # The report reads the zoo's run folders too, bias included
     reported = sb3_sera("report", folder, "--out", str(tmp_path / "report"))
     assert "### Pendulum-v1" in reported.stdout and "### sb3_sera/SimpleSpread-v0" in reported.stdout

@@ -31,6 +31,11 @@ ZOO_BASE_ALGOS = {"masac": "sac", "matd3": "td3", "maddpg": "ddpg", "mappo": "pp
 HYPERPARAMS_DIR = Path(__file__).resolve().parents[1] / "hyperparams"
 #: The zoo commands the CLI passes through
 ZOO_COMMANDS = ("train", "enjoy", "record-video", "optimize")
+#: The zoo commands that load a model only to run it
+PLAYBACK_COMMANDS = ("enjoy", "record-video")
+#: The package's off-policy algorithms (rl-zoo3's ``off_policy_algos``, which its enjoy and record-video load with a
+#: one-transition replay buffer; that list is local to those commands, so :func:`playback_algos` does it for ours)
+ZOO_OFF_POLICY_ALGOS = ("serasac", "masac", "matd3", "maddpg")
 
 
 def _actor_only(hyperparams: dict[str, Any]) -> dict[str, Any]:
@@ -62,14 +67,37 @@ def convert_serasac_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
     return _actor_only(convert_offpolicy_params(sampled_params))
 
 
-def register_with_zoo() -> None:
+def _with_small_buffer(algo_class: type[BaseAlgorithm]) -> type[BaseAlgorithm]:
+    """``algo_class`` whose ``load`` makes a one-transition replay buffer unless ``buffer_size`` is given."""
+
+    class Playback(algo_class):  # type: ignore[valid-type,misc]
+        @classmethod
+        def load(cls, path: Any, *args: Any, **kwargs: Any) -> BaseAlgorithm:
+            return super().load(path, *args, **{"buffer_size": 1, **kwargs})
+
+    Playback.__name__ = Playback.__qualname__ = algo_class.__name__
+    return Playback
+
+
+def playback_algos() -> dict[str, type[BaseAlgorithm]]:
+    """
+    The package's algorithms as rl-zoo3's ``enjoy`` and ``record-video`` load them: the off-policy ones with a
+    one-transition replay buffer, as the zoo loads its own, instead of allocating the saved ``buffer_size``.
+    """
+    return {name: _with_small_buffer(algo) if name in ZOO_OFF_POLICY_ALGOS else algo for name, algo in ZOO_ALGOS.items()}
+
+
+def register_with_zoo(command: str = "train") -> None:
     """
     Add the package's algorithms, samplers and converters to rl-zoo3's tables, and make its evaluations also record
     the initial-state value bias (:class:`~sb3_sera.common.callbacks.InitialStateBiasCallback`); idempotent.
+
+    :param command: the zoo command about to run; for ``enjoy`` and ``record-video`` the algorithms are those of
+        :func:`playback_algos`
     """
     from rl_zoo3 import exp_manager, hyperparams_opt, utils
 
-    utils.ALGOS.update(ZOO_ALGOS)
+    utils.ALGOS.update(playback_algos() if command in PLAYBACK_COMMANDS else ZOO_ALGOS)
     exp_manager.EvalCallback = InitialStateBiasCallback  # type: ignore[misc]
     samplers, converters = hyperparams_opt.HYPERPARAMS_SAMPLER, hyperparams_opt.HYPERPARAMS_CONVERTER
     samplers["serasac"], converters["serasac"] = sample_serasac_params, convert_serasac_params
@@ -107,7 +135,7 @@ def zoo_argv(command: str, argv: Sequence[str]) -> list[str]:
 
 def run_zoo(command: str, argv: Sequence[str]) -> None:
     """Run rl-zoo3's ``command`` (train, enjoy, record-video, optimize) with the package's algorithms."""
-    register_with_zoo()
+    register_with_zoo(command)
     from rl_zoo3.enjoy import enjoy
     from rl_zoo3.train import train
 
