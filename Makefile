@@ -3,13 +3,19 @@ VENV ?= .venv
 PYTHON ?= python3
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
+# The index torch comes from, passed to pip as --extra-index-url when set. Empty (the default): pip's own
+# configuration, as for every other package; from PyPI on Linux x86_64 that is torch's CUDA build (about 20 nvidia-*
+# packages, several GB), which uses an NVIDIA GPU where there is one and runs on the CPU where there is none.
+# The CPU-only build: make install TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu
+TORCH_INDEX_URL ?=
 
 .PHONY: install demo test test-slow lint type bench clean
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -c constraints.txt -e ".[dev,distributed]"
+	$(PY) -m pip install --quiet -c constraints.txt torch $(if $(TORCH_INDEX_URL),--extra-index-url $(TORCH_INDEX_URL))
+	$(PY) -m pip install --quiet -c constraints.txt -e ".[dev,distributed,plots]"
 	touch $(STAMP)
 
 install: $(STAMP)

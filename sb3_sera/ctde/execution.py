@@ -1,5 +1,5 @@
 """
-Decentralized execution: per-agent controllers taken from a trained CTDE model (SPEC section 2).
+Decentralized execution: per-agent controllers taken from a trained CTDE model (docs/SPEC.md, section 2).
 
 Each controller reads only its own agent's observation (as the PettingZoo env gives it) and returns that agent's
 action within its own bounds; the critics are not part of them, nor of what :meth:`DecentralizedActors.save`

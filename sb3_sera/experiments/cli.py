@@ -51,6 +51,9 @@ def _report(args: argparse.Namespace) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="sb3-sera", description="SERA for Stable-Baselines3")
+    from sb3_sera import __version__
+
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     commands = parser.add_subparsers(dest="command", required=True)
     comp = commands.add_parser(
         "compare",

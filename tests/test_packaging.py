@@ -1,0 +1,89 @@
+"""The package as it is built, installed and set up: wheel contents, metadata, version, the Makefile's torch index."""
+
+import os
+import shutil
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+
+from sb3_sera import __version__
+from sb3_sera.experiments.cli import main
+from sb3_sera.experiments.zoo import ZOO_ALGOS
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def wheel(tmp_path_factory) -> tuple[Path, str]:
+    """A wheel built from a copy of the sources with setuptools' own PEP 517 hook, and what the build printed."""
+    source = tmp_path_factory.mktemp("source")
+    for name in ("pyproject.toml", "setup.cfg", "README.md"):
+        shutil.copy(ROOT / name, source / name)
+    shutil.copytree(ROOT / "sb3_sera", source / "sb3_sera", ignore=shutil.ignore_patterns("__pycache__"))
+    dist = tmp_path_factory.mktemp("dist")
+    build = f"from setuptools import build_meta; print(build_meta.build_wheel({str(dist)!r}))"
+    completed = subprocess.run(
+        [sys.executable, "-W", "always", "-c", build], cwd=source, capture_output=True, text=True, timeout=600
+    )
+    assert completed.returncode == 0, completed.stderr[-3000:]
+    return dist / completed.stdout.strip().splitlines()[-1], completed.stdout + completed.stderr
+
+
+def test_the_wheel_ships_the_hyperparameter_files_and_builds_without_deprecations(wheel):
+    path, output = wheel
+    names = zipfile.ZipFile(path).namelist()
+    assert {f"sb3_sera/hyperparams/{algo}.yml" for algo in ZOO_ALGOS} <= set(names)
+    metadata = zipfile.ZipFile(path).read(f"sb3_sera-{__version__}.dist-info/METADATA").decode()
+    assert "License-Expression: MIT" in metadata
+    assert "Provides-Extra: plots" in metadata and "rl_zoo3[plots]" in metadata
+    assert "Deprecat" not in output, output
+
+
+def test_an_installed_package_finds_its_default_hyperparameters(wheel, tmp_path):
+    target = tmp_path / "site"
+    install = [sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-index", "--target", str(target)]
+    completed = subprocess.run([*install, str(wheel[0])], capture_output=True, text=True, timeout=600)
+    assert completed.returncode == 0, completed.stderr[-3000:]
+    check = (
+        "import sb3_sera; from sb3_sera.experiments.zoo import zoo_argv; "
+        "args = zoo_argv('train', ['--algo', 'serasac']); print(sb3_sera.__file__); print(args[-1])"
+    )
+    # Run outside the repository, with the installed copy first on the path
+    environment = {**os.environ, "PYTHONPATH": str(target)}
+    completed = subprocess.run([sys.executable, "-c", check], cwd=tmp_path, env=environment, capture_output=True, text=True)
+    assert completed.returncode == 0, completed.stderr[-3000:]
+    package_file, config = completed.stdout.split()
+    assert Path(package_file).is_relative_to(target)
+    assert Path(config) == target / "sb3_sera" / "hyperparams" / "serasac.yml" and Path(config).exists()
+
+
+def test_version_flag(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--version"])
+    assert exit_info.value.code == 0
+    assert capsys.readouterr().out.strip() == f"sb3-sera {__version__}"
+
+
+def make_install_commands(**variables: str) -> list[str]:
+    """The commands ``make install`` would run for a fresh virtual environment (``make -n``: nothing runs)."""
+    assignments = [f"{name}={value}" for name, value in {"VENV": "/nonexistent/venv", **variables}.items()]
+    completed = subprocess.run(
+        ["make", "-n", "-B", "install", *assignments], cwd=ROOT, capture_output=True, text=True, timeout=60
+    )
+    assert completed.returncode == 0, completed.stderr
+    return [line for line in completed.stdout.splitlines() if "pip install" in line and "--upgrade pip" not in line]
+
+
+@pytest.mark.skipif(shutil.which("make") is None, reason="needs make")
+def test_make_install_takes_torch_from_torch_index_url_when_set():
+    cpu = "https://download.pytorch.org/whl/cpu"
+    torch_install, package_install = make_install_commands(TORCH_INDEX_URL=cpu)
+    assert torch_install.split()[-3:] == ["torch", "--extra-index-url", cpu]
+    assert "-c constraints.txt" in torch_install and "index-url" not in package_install
+    assert '-e ".[dev,distributed,plots]"' in package_install
+    # Unset: pip's own configuration, no index flag
+    torch_install, package_install = make_install_commands()
+    assert torch_install.split()[-1] == "torch" and "index-url" not in torch_install + package_install
