@@ -9,11 +9,13 @@ import torch as th
 from sb3_sera.sera.aggregation import (
     aggregate_actor,
     aggregate_target,
+    correlation_matrix,
     critic_correlation,
     ensemble_disagreement,
     median_anchor,
     selected_critic,
     sera_aggregate,
+    td_error_correlation,
 )
 
 
@@ -165,3 +167,13 @@ def test_critic_correlation_by_hand():
     # A constant critic counts as uncorrelated instead of NaN
     constant = th.tensor([[1.0, 5.0], [2.0, 5.0], [3.0, 5.0]])
     assert critic_correlation(constant).item() == 0.0
+
+
+def test_td_error_correlation_against_a_hand_computed_matrix():
+    # TD errors of three critics over four samples; columns centred: a = (-1.5, -0.5, 0.5, 1.5),
+    # b = (-1.5, 0.5, -0.5, 1.5) (sum a*b = 4, both norms^2 = 5: r = 0.8), c = -a (r = -1 with a, -0.8 with b)
+    deltas = th.tensor([[1.0, 1.0, 4.0], [2.0, 3.0, 3.0], [3.0, 2.0, 2.0], [4.0, 4.0, 1.0]])
+    expected = th.tensor([[1.0, 0.8, -1.0], [0.8, 1.0, -0.8], [-1.0, -0.8, 1.0]])
+    assert th.allclose(correlation_matrix(deltas), expected, atol=1e-6)
+    # Mean of the off-diagonal entries: 2 * (0.8 - 1 - 0.8) / 6 = -1/3
+    assert td_error_correlation(deltas).item() == pytest.approx(-1 / 3, abs=1e-6)

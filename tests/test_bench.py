@@ -28,9 +28,10 @@ def write(tmp_path, text: str):
     ("replace", "message"),
     [
         (("serasac: {}", "sera: {}"), r"variant 'sera' names unknown algorithm 'sera'; known: .*'serasac'"),
-        (("Pendulum-v1", "Pendulum-v9"), r"unknown task\(s\) \['Pendulum-v9'\]; registered ids include .*sb3_sera/"),
+        (("Pendulum-v1", "Pendulum-v9"), r"unknown task 'Pendulum-v9'; registered ids include .*sb3_sera/"),
         (("batch_size: 32", "batch_sise: 32"), r"unknown hyperparameter\(s\) \['batch_sise'\] for serasac; allowed: "),
         (("seeds: [0]", "seed: [0]"), r"unknown key\(s\) \['seed'\]; allowed: "),
+        (("batch_size: 32", "batch_size: 0"), r"serasac on Pendulum-v1: ValueError: batch_size=0 is out of range"),
     ],
 )
 def test_bad_grids_are_refused_before_any_run(tmp_path, replace, message):
@@ -42,17 +43,21 @@ def test_bad_grids_are_refused_before_any_run(tmp_path, replace, message):
 
 def test_grid_runs_and_resumes(tmp_path, capsys):
     path, out = write(tmp_path, GRID), tmp_path / "out"
-    main(["bench", str(path), "--out", str(out), "--n-jobs", "2"])
+    main(["bench", str(path), "--out", str(out), "--n-jobs", "2", "--reps", "200"])
     assert "| ensemble_mean | 1 |" in capsys.readouterr().out
-    assert "ensemble_mean" in (out / "Pendulum-v1_summary.md").read_text()
-    kept = out / "serasac" / "Pendulum-v1_0" / "result.json"
-    redone = out / "ensemble_mean" / "Pendulum-v1_0" / "result.json"
+    assert "ensemble_mean" in (out / "reports" / "grid_1" / "report.md").read_text()
+    assert (out / "reports" / "grid_1" / "Pendulum-v1_200_curves.png").exists()
+    kept = out / "serasac" / "Pendulum-v1_1" / "result.json"
+    redone = out / "ensemble_mean" / "Pendulum-v1_1" / "result.json"
     stamp = kept.stat().st_mtime_ns
-    # An interrupted grid: one run never finished (no result.json); running the grid again does only that one
+    # An interrupted grid: one run never finished (no result.json); running the grid again does only that one, in its
+    # own folder
     redone.unlink()
-    main(["bench", str(path), "--out", str(out), "--n-jobs", "2"])
+    main(["bench", str(path), "--out", str(out), "--n-jobs", "2", "--reps", "200"])
     assert kept.stat().st_mtime_ns == stamp
     assert redone.exists()
+    assert not (out / "ensemble_mean" / "Pendulum-v1_2").exists()
+    assert (out / "reports" / "grid_2" / "report.md").exists()
 
 
 def test_grid_on_a_local_ray_instance(tmp_path):
@@ -61,8 +66,8 @@ def test_grid_on_a_local_ray_instance(tmp_path):
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     try:
         address = ray.get_runtime_context().gcs_address
-        by_task = bench.run_grid(write(tmp_path, GRID), str(tmp_path / "out"), ray_address=address)
+        results = bench.run_grid(write(tmp_path, GRID), str(tmp_path / "out"), ray_address=address)
     finally:
         ray.shutdown()
-    assert sorted(result.algo for result in by_task["Pendulum-v1"]) == ["ensemble_mean", "serasac"]
-    assert (tmp_path / "out" / "serasac" / "Pendulum-v1_0" / "evaluations.npz").exists()
+    assert sorted(result.variant for result in results) == ["ensemble_mean", "serasac"]
+    assert (tmp_path / "out" / "serasac" / "Pendulum-v1_1" / "evaluations.npz").exists()

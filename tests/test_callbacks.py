@@ -13,7 +13,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import configure
 
 from sb3_sera import SERASAC
-from sb3_sera.common.callbacks import BIAS_FILE, InitialStateBiasCallback
+from sb3_sera.common.callbacks import BIAS_FILE, DIAGNOSTICS_FILE, InitialStateBiasCallback, critic_diagnostics
 
 START = np.array([0.3, -0.2], dtype=np.float32)
 
@@ -89,3 +89,63 @@ def test_models_without_critics_are_evaluated_without_bias(tmp_path):
         model.learn(40, callback=callback)
     assert np.load(tmp_path / "evaluations.npz")["timesteps"].tolist() == [20, 40]
     assert not (tmp_path / BIAS_FILE).exists() and callback.bias_timesteps == []
+
+
+@pytest.mark.parametrize("algo", [SERASAC, SAC])
+def test_critic_diagnostics_recorded_at_each_evaluation_without_changing_training(algo, tmp_path):
+    def train(record: bool):
+        model = algo("MlpPolicy", "Pendulum-v1", learning_starts=50, batch_size=32, seed=0)
+        callback = InitialStateBiasCallback(
+            make_vec_env("Pendulum-v1", seed=1), eval_freq=100, n_eval_episodes=1, log_path=str(tmp_path / str(record))
+        )
+        if not record:
+            callback._record_critic_diagnostics = lambda: None  # type: ignore[method-assign]
+        model.learn(300, callback=callback)
+        return model
+
+    model = train(record=True)
+    records = np.load(tmp_path / "True" / DIAGNOSTICS_FILE)
+    n_critics = 5 if algo is SERASAC else 2
+    assert records["timesteps"].tolist() == [100, 200, 300]
+    assert records["td_error_corr_matrix"].shape == (3, n_critics, n_critics)
+    assert records["critic_corr_matrix"].shape == (3, n_critics, n_critics)
+    for index in range(3):
+        matrix = records["td_error_corr_matrix"][index]
+        off_diagonal = (matrix.sum() - np.trace(matrix)) / (n_critics * (n_critics - 1))
+        assert records["td_error_corr"][index] == pytest.approx(off_diagonal, abs=1e-6)
+    assert np.all(records["td_target_var"] > 0)
+    assert ("critic_lr" in records.files) == (algo is SERASAC)
+    # The diagnostics' draws from the replay buffer and the actor leave the training's random streams alone
+    unrecorded = train(record=False)
+    assert all(th.equal(a, b) for a, b in zip(model.policy.parameters(), unrecorded.policy.parameters(), strict=True))
+
+
+def test_critic_diagnostics_by_hand():
+    # SAC's target y = r + gamma (1 - d) (min_k Qbar_k(s', a') - alpha log pi(a'|s')), recomputed from the same draws
+    model = SAC("MlpPolicy", "Pendulum-v1", learning_starts=10, batch_size=16, seed=0).learn(60)
+    th.manual_seed(3)
+    np.random.seed(3)
+    values = critic_diagnostics(model, 64)
+    th.manual_seed(3)
+    np.random.seed(3)
+    batch = model.replay_buffer.sample(64)
+    with th.no_grad():
+        next_actions, next_log_prob = model.actor.action_log_prob(batch.next_observations)
+        next_q = th.min(th.cat(model.critic_target(batch.next_observations, next_actions), dim=1), dim=1, keepdim=True).values
+        target = batch.rewards + (1 - batch.dones) * model.gamma * (
+            next_q - th.exp(model.log_ent_coef) * next_log_prob.reshape(-1, 1)
+        )
+        current = th.cat(model.critic(batch.observations, batch.actions), dim=1)
+    assert float(values["td_target_var"]) == pytest.approx(float(target.var(unbiased=False)), rel=1e-5)
+    expected = np.corrcoef((target - current).numpy().T)
+    np.testing.assert_allclose(values["td_error_corr_matrix"], expected, atol=1e-5)
+
+
+def test_serasac_logs_the_td_error_correlation(tmp_path):
+    model = SERASAC("MlpPolicy", "Pendulum-v1", learning_starts=50, batch_size=32, seed=0)
+    model.set_logger(configure(str(tmp_path), ["csv"]))
+    model.learn(400, log_interval=1)
+    progress = pd.read_csv(tmp_path / "progress.csv")
+    values = progress["train/td_error_corr"].dropna()
+    assert len(values) == 2 and values.between(-1.0, 1.0).all()
+    assert "train/critic_corr" in progress

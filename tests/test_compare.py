@@ -1,38 +1,95 @@
-"""The comparison job end to end at a tiny budget: run folders, table, plot, resume."""
+"""The comparison job end to end at a tiny budget: records, hyperparameters from the YAML files, reports, resume."""
 
 import json
+import re
 import subprocess
 import sys
 
 import numpy as np
 import pytest
+import yaml
 
-from sb3_sera.experiments import compare
+from sb3_sera.experiments import compare, runs
 from sb3_sera.experiments.cli import main
+
+TINY = ["--seeds", "0", "-n", "240", "--eval-freq", "120", "--eval-episodes", "1", "--reps", "200"]
 
 
 def test_compare_cli_end_to_end(tmp_path, capsys):
     out = tmp_path / "runs"
-    argv = ["compare", "--algos", "serasac", "sac", "--seeds", "0", "-n", "240", "--eval-freq", "120"]
-    argv += ["--eval-episodes", "1", "--n-jobs", "2", "--out", str(out)]
+    argv = ["compare", "--algos", "serasac", "sac", *TINY, "--n-jobs", "2", "--out", str(out)]
+    argv += ["--num-threads", "1", "--device", "cpu", "-params", "learning_starts:100", "serasac:sera_alpha:0.3"]
     main(argv)
     printed = capsys.readouterr().out
     assert "| serasac | 1 |" in printed and "| sac | 1 |" in printed
-    assert (out / "Pendulum-v1_learning_curves.png").stat().st_size > 0
-    assert "final return" in (out / "Pendulum-v1_summary.md").read_text()
+    report = out / "reports" / "Pendulum-v1_1"
+    assert (report / "Pendulum-v1_240_curves.png").stat().st_size > 0
+    assert "final return IQM [95% CI]" in (report / "report.md").read_text()
     for algo in ("serasac", "sac"):
-        folder = out / algo / "Pendulum-v1_0"
+        folder = out / algo / "Pendulum-v1_1"  # ids from 1, as rl-zoo3 numbers them
         evaluations = np.load(folder / "evaluations.npz")
         assert evaluations["timesteps"].tolist() == [120, 240]
-        assert (folder / "Pendulum-v1.zip").exists()
-        assert (folder / "0.monitor.csv").exists()
+        assert (folder / "Pendulum-v1.zip").exists() and (folder / "0.monitor.csv").exists()
+        args = yaml.safe_load((folder / "Pendulum-v1" / "args.yml").read_text())
+        config = yaml.safe_load((folder / "Pendulum-v1" / "config.yml").read_text())
+        assert (args["algo"], args["variant"], args["env"], args["seed"], args["n_timesteps"]) == (
+            algo,
+            algo,
+            "Pendulum-v1",
+            0,
+            240,
+        )
+        assert args["hyperparams_source"].endswith(f"{algo}.yml:Pendulum-v1")
+        assert {"torch", "stable-baselines3", "sb3-sera"} <= set(args["versions"])
+        # hyperparams/<algo>.yml's Pendulum entry (learning rate 1e-3, as `sb3-sera train` uses), then -params
+        assert config["learning_rate"] == 1e-3 and config["learning_starts"] == 100
+        assert ("sera_alpha" in config) == (algo == "serasac")
+        # The thread and device flags reached the worker
         result = json.loads((folder / "result.json").read_text())
-        assert result["final_return"] == pytest.approx(evaluations["results"][-1].mean())
-
-    # A finished run is not run again
-    stamp = (out / "serasac" / "Pendulum-v1_0" / "result.json").stat().st_mtime_ns
+        assert (result["torch_threads"], result["device"], args["num_threads"], args["device"]) == (1, "cpu", 1, "cpu")
+        # TensorBoard runs named by variant and seed
+        assert (folder / f"{algo}_seed0_1").is_dir()
+    # The same command again: finished runs are read back, and the report goes to a new folder
+    stamp = (out / "serasac" / "Pendulum-v1_1" / "result.json").stat().st_mtime_ns
     main(argv)
-    assert (out / "serasac" / "Pendulum-v1_0" / "result.json").stat().st_mtime_ns == stamp
+    assert (out / "serasac" / "Pendulum-v1_1" / "result.json").stat().st_mtime_ns == stamp
+    assert (out / "reports" / "Pendulum-v1_2" / "report.md").exists()
+    assert (out / "reports" / "Pendulum-v1_1" / "report.md").exists()
+    # Other settings make a new run with the next id, never mixed with the first
+    main([*argv, "serasac:sera_alpha:0.6", "--algos", "serasac"])
+    args = yaml.safe_load((out / "serasac" / "Pendulum-v1_2" / "Pendulum-v1" / "config.yml").read_text())
+    assert args["sera_alpha"] == 0.6
+    assert not (out / "sac" / "Pendulum-v1_2").exists()
+
+
+@pytest.mark.parametrize(
+    ("params", "message"),
+    [
+        (["learning_starts:10"], r"ppo on Pendulum-v1: unknown hyperparameter\(s\) \['learning_starts'\] for ppo"),
+        (["ppo:learning_starts:10"], r"unknown hyperparameter\(s\) \['learning_starts'\] for ppo"),
+        (["serasac:sera_alpha:2.0"], r"serasac on Pendulum-v1: ValueError: sera_alpha=2.0 is out of range"),
+        (["td3:tau:0.1"], r"-params name algorithm\(s\) \['td3'\] that are not compared"),
+        (["learning_starts"], r"-params item 'learning_starts' is invalid: expected key:value or algo:key:value"),
+    ],
+)
+def test_params_are_checked_for_every_algorithm_before_any_run(tmp_path, capsys, params, message):
+    out = tmp_path / "runs"
+    with pytest.raises(SystemExit) as exit_info:
+        main(["compare", "--algos", "serasac", "ppo", *TINY, "--out", str(out), "-params", *params])
+    assert exit_info.value.code == 2
+    error = capsys.readouterr().err.strip()
+    assert error.startswith("sb3-sera compare: error: ") and "\n" not in error
+
+    assert re.search(message, error)
+    assert not out.exists()
+
+
+def test_parse_params():
+    common, per_algo = compare.parse_params(
+        ["learning_starts:1e2", "serasac:sera_alpha:0.3", "learning_rate:lin_3e-4"], ["serasac"]
+    )
+    assert common == {"learning_starts": 100.0, "learning_rate": "lin_3e-4"}
+    assert per_algo == {"serasac": {"sera_alpha": 0.3}}
 
 
 def test_unknown_algorithm_is_refused_before_any_run(tmp_path):
@@ -41,20 +98,35 @@ def test_unknown_algorithm_is_refused_before_any_run(tmp_path):
     assert not any(tmp_path.iterdir())
 
 
+def test_a_failed_run_leaves_no_folder_and_is_named(tmp_path):
+    bad = runs.make_spec("serasac", "serasac", "Pendulum-v1", 0, 200, {"policy_kwargs": "dict(n_critics=1)"}, 100, 1)
+    good = runs.make_spec("sac", "sac", "Pendulum-v1", 0, 200, {"learning_starts": 100}, 100, 1)
+    with pytest.raises(
+        RuntimeError, match=r"1 of 2 run\(s\) failed: serasac on Pendulum-v1 seed 0 \(.*serasac/Pendulum-v1_1\)"
+    ):
+        runs.execute([bad, good], tmp_path, n_jobs=2, progress_bar=False)
+    assert not (tmp_path / "serasac" / "Pendulum-v1_1").exists()
+    assert (tmp_path / "sac" / "Pendulum-v1_1" / "result.json").exists()
+
+
 def test_module_entry_point_help():
     completed = subprocess.run([sys.executable, "-m", "sb3_sera", "compare", "--help"], capture_output=True, text=True)
     assert completed.returncode == 0
-    assert "--n-timesteps" in completed.stdout
+    assert "--n-timesteps" in completed.stdout and "--num-threads" in completed.stdout
 
 
 def test_policy_follows_the_task():
     from stable_baselines3.common.env_util import make_vec_env
 
-    assert compare.policy_for(make_vec_env("Pendulum-v1")) == "MlpPolicy"
-    assert compare.policy_for(make_vec_env("sb3_sera/SimpleSpread-v0")) == "CTDEPolicy"
+    assert runs.policy_for(make_vec_env("Pendulum-v1")) == "MlpPolicy"
+    assert runs.policy_for(make_vec_env("sb3_sera/SimpleSpread-v0")) == "CTDEPolicy"
 
 
-def test_run_folders_follow_rl_zoo3_naming():
-    from pathlib import Path
-
-    assert compare.run_dir("out", "masac", "sb3_sera/HalfCheetah-6x1-v0", 2) == Path("out/masac/sb3_sera-HalfCheetah-6x1-v0_2")
+def test_hyperparameters_come_from_the_zoo_files():
+    # This package's file for its algorithms, rl-zoo3's own for the zoo's
+    spec = runs.make_spec("serasac", "serasac", "HalfCheetah-v5", 0, 1000)
+    assert spec.hyperparams["learning_starts"] == 10000 and spec.hyperparams["critic_lr_max"] == 5e-4
+    assert spec.hyperparams_source.endswith("hyperparams/serasac.yml:HalfCheetah-v5")
+    sac = runs.make_spec("sac", "sac", "Pendulum-v1", 0, 1000, {"batch_size": 64})
+    assert sac.hyperparams == {"policy": "MlpPolicy", "learning_rate": 1e-3, "batch_size": 64}
+    assert "rl_zoo3" in sac.hyperparams_source

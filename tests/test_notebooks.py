@@ -22,10 +22,16 @@ def test_notebook_runs(path, tmp_path, monkeypatch):
     monkeypatch.setenv("MPLBACKEND", "Agg")
     notebook = nbformat.read(path, as_version=4)
     NotebookClient(notebook, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}}).execute()
-    outputs = "".join(output.get("text", "") for cell in notebook.cells for output in cell.get("outputs", []))
-    assert "final return" in outputs and "normalized AUC" in outputs
-    names = {"serasac_vs_sac": "single_agent", "serasac_vs_masac_multiagent": "multi_agent"}
-    folder = tmp_path / names[path.stem]
-    assert folder.is_dir()
-    # the figures it drew: learning curves, initial-state bias, diagnostics
-    assert all((folder / name).stat().st_size > 0 for name in ("curves.png", "bias.png", "diagnostics.png"))
+    outputs = "".join(
+        output.get("text", "") + output.get("data", {}).get("text/markdown", "")
+        for cell in notebook.cells
+        for output in cell.get("outputs", [])
+    )
+    assert "final return IQM [95% CI]" in outputs and "normalized AUC" in outputs
+    # the report it wrote and the figures it showed: learning curves, initial-state bias, diagnostics, correlations
+    report = tmp_path / RUN_FOLDERS[path.stem] / "reports" / "notebook_1"
+    assert (report / "report.md").exists()
+    shown = [output for cell in notebook.cells for output in cell.get("outputs", []) if "image/png" in output.get("data", {})]
+    assert len(shown) >= 4
+    for figure in ("curves", "bias", "diagnostics", "correlations"):
+        assert len(list(report.glob(f"*_300_{figure}.png"))) == 1

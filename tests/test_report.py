@@ -1,79 +1,227 @@
-"""`sb3-sera report` on fixed run folders (values by hand and by scipy) and on TensorBoard logs of a real run."""
+"""`sb3-sera report` on fixed run folders: grouping by budget and settings, statistics by hand and by rliable, figures."""
 
-import shutil
+import json
 
 import numpy as np
 import pytest
-from scipy import stats
+import yaml
+from rliable import library as rly
+from rliable import metrics
+from scipy import stats as scipy_stats
 
-from sb3_sera import SERASAC
+from sb3_sera.common.callbacks import BIAS_FILE, DIAGNOSTICS_FILE
+from sb3_sera.experiments import stats
 from sb3_sera.experiments.cli import main
-from sb3_sera.experiments.report import load_runs, load_scalars, split_by_task, write_report
+from sb3_sera.experiments.report import aligned, group_runs, load_runs, report_roots, write_report
 
 TASK = "sb3_sera/HalfCheetah-6x1-v0"
+REPS = 400
 
 
-def fake_run(root, algo: str, run_id: int, returns: list[float], last_bias: float | None = None) -> None:
-    folder = root / algo / f"sb3_sera-HalfCheetah-6x1-v0_{run_id}"
-    folder.mkdir(parents=True)
-    timesteps = np.array([1000, 2000, 3000])
-    # Two evaluation episodes per point, averaging to `returns`
+def fake_run(
+    root,
+    variant: str,
+    run_id: int,
+    seed: int,
+    returns: list[float],
+    budget: int = 3000,
+    hyperparams: dict | None = None,
+    timesteps: list[int] | None = None,
+    algo: str = "serasac",
+    env_id: str = TASK,
+    bias: float | None = None,
+    n_critics: int = 0,
+    finished: bool = True,
+):
+    """A run folder as the run engine writes it; two evaluation episodes per point, averaging to `returns`."""
+    name = env_id.replace("/", "-")
+    folder = root / variant / f"{name}_{run_id}"
+    (folder / name).mkdir(parents=True)
+    args = {"algo": algo, "variant": variant, "env": env_id, "seed": seed, "n_timesteps": budget}
+    (folder / name / "args.yml").write_text(yaml.safe_dump(args))
+    config = {"policy": "CTDEPolicy", "n_timesteps": budget, **(hyperparams or {"batch_size": 256})}
+    (folder / name / "config.yml").write_text(yaml.safe_dump(config))
+    steps = np.array(timesteps or [budget // 3, 2 * budget // 3, budget])
     results = np.stack([np.array(returns) - 1.0, np.array(returns) + 1.0], axis=1)
-    np.savez(folder / "evaluations.npz", timesteps=timesteps, results=results, ep_lengths=np.ones_like(results))
-    if last_bias is not None:
-        # Episodes' V(s0) and discounted returns: the last evaluation's means differ by `last_bias`
-        values = np.array([[10.0, 12.0], [20.0, 22.0], [30.0, 30.0]])
-        discounted = values - np.array([[1.0, 1.0], [0.0, 0.0], [last_bias - 1.0, last_bias + 1.0]])
-        np.savez(folder / "initial_state_bias.npz", timesteps=timesteps, values=values, discounted_returns=discounted)
+    np.savez(folder / "evaluations.npz", timesteps=steps, results=results, ep_lengths=np.ones_like(results))
+    if bias is not None:
+        # Episodes' V(s0) and discounted returns: every evaluation's means differ by `bias`
+        values = np.full((len(steps), 2), 10.0)
+        np.savez(folder / BIAS_FILE, timesteps=steps, values=values, discounted_returns=values - bias)
+    if n_critics:
+        matrix = np.full((n_critics, n_critics), 0.5) + 0.5 * np.eye(n_critics)
+        np.savez(
+            folder / DIAGNOSTICS_FILE,
+            timesteps=steps,
+            td_target_var=np.array([1.0, 2.0, 3.0]),
+            critic_corr=np.full(3, 0.99),
+            td_error_corr=np.full(3, 0.5),
+            critic_corr_matrix=np.stack([matrix] * 3),
+            td_error_corr_matrix=np.stack([matrix] * 3),
+            critic_lr=np.full((3, n_critics), 3e-4),
+        )
+    if finished:
+        (folder / "result.json").write_text(json.dumps({"wall_time_s": 10.0}))
+    return folder
 
 
-def test_report_tables_by_hand(tmp_path):
-    runs_root = tmp_path / "runs"
-    fake_run(runs_root, "serasac", 1, [0.0, 3000.0, 5000.0], last_bias=4.0)
-    fake_run(runs_root, "serasac", 2, [0.0, 3000.0, 6000.0], last_bias=2.0)
-    fake_run(runs_root, "masac", 1, [0.0, 1000.0, 4000.0])
-    fake_run(runs_root, "masac", 2, [0.0, 2000.0, 4400.0])
-    runs = load_runs([runs_root])
-    assert {run.env_id for run in runs} == {TASK}  # the folder name maps back to the registered id
-    assert [run.initial_state_bias for run in runs if run.algo == "serasac"] == [[1.0, 0.0, 4.0], [1.0, 0.0, 2.0]]
-    report = write_report([runs_root], tmp_path / "report").read_text()
-    lines = report.splitlines()
-    serasac = next(line for line in lines if line.startswith("| serasac |"))
-    masac = next(line for line in lines if line.startswith("| masac |"))
-    # serasac: finals 5000, 6000; paper 5520 ± 711; AUC (0, 3000, 5000) = 2750, (0, 3000, 6000) = 3000
-    # last initial-state bias 4 and 2 -> 3; masac has no bias records
-    assert serasac == "| serasac | 2 | 5500.0 ± 500.0 | 5520 ± 711 | 2875.0 |  |  | 3.0 |"
-    p_value = stats.ttest_ind([5000.0, 6000.0], [4000.0, 4400.0], equal_var=False).pvalue
-    # masac: finals 4000, 4400 -> 4200 ± 200; AUC (0, 1000, 4000) = 1500, (0, 2000, 4400) = 2100; +30.95 %
-    assert masac == f"| masac | 2 | 4200.0 ± 200.0 | 4500 ± 802 | 1800.0 | {p_value:.3f} | +31.0 |  |"
-    assert "Paper only: Ensemble Mean 4831 ± 721, IET 4608 ± 783, MATD3 3815 ± 912, MAPPO 3623 ± 812" in report
-    assert (tmp_path / "report" / "sb3_sera-HalfCheetah-6x1-v0_curves.png").stat().st_size > 0
-    assert "![sb3_sera/HalfCheetah-6x1-v0 initial-state bias](sb3_sera-HalfCheetah-6x1-v0_bias.png)" in report
-    assert (tmp_path / "report" / "sb3_sera-HalfCheetah-6x1-v0_bias.png").stat().st_size > 0
+def table_row(report: str, label: str) -> list[str]:
+    line = next(line for line in report.splitlines() if line.startswith(f"| {label} |"))
+    return [cell.strip() for cell in line.strip("|").split("|")]
 
 
-def test_report_diagnostics_from_tensorboard(tmp_path, capsys):
-    SERASAC("MlpPolicy", "Pendulum-v1", learning_starts=50, batch_size=32, tensorboard_log=str(tmp_path / "tb"), seed=0).learn(
-        450, log_interval=1
+def test_runs_of_other_budgets_or_settings_are_never_averaged(tmp_path):
+    root = tmp_path / "runs"
+    # serasac at 3,000 steps with batch 256 (seeds 0, 1), batch 64 (seed 0), and at 600 steps (seed 0)
+    fake_run(root, "serasac", 1, 0, [0.0, 3000.0, 5000.0], bias=4.0)
+    fake_run(root, "serasac", 2, 1, [0.0, 3000.0, 6000.0], bias=2.0)
+    fake_run(root, "serasac", 3, 0, [0.0, 100.0, 200.0], hyperparams={"batch_size": 64})
+    fake_run(root, "serasac", 4, 0, [0.0, 10.0, 20.0], budget=600)
+    fake_run(root, "masac", 1, 0, [0.0, 1000.0, 4000.0])
+    fake_run(root, "masac", 2, 1, [0.0, 2000.0, 4400.0])
+    runs, skipped = load_runs([root])
+    assert not skipped
+    groups = group_runs(runs)
+    assert [(g.label, g.n_timesteps, len(g.runs)) for g in groups] == [
+        ("serasac", 600, 1),
+        ("serasac (batch_size=256)", 3000, 2),
+        ("serasac (batch_size=64)", 3000, 1),
+        ("masac", 3000, 2),
+    ]
+    report = write_report(runs, tmp_path / "report", reps=REPS).read_text()
+    assert "## sb3_sera/HalfCheetah-6x1-v0, 600 steps" in report
+    assert "## sb3_sera/HalfCheetah-6x1-v0, 3,000 steps" in report
+    assert "serasac: 2 sets of hyperparameters, differing in batch_size: listed apart, never averaged together." in report
+    assert "serasac also has runs of 600 steps on this task" in report
+    assert "serasac also has runs of 3,000 steps on this task" in report
+    # batch 256: finals 5000, 6000 -> mean 5500, sample std 707.1 (by hand: sqrt(((-500)^2 + 500^2) / 1));
+    # AUC (0, 3000, 5000) -> 2750 and (0, 3000, 6000) -> 3000; bias 4 and 2 -> 3; IQM of two values is their mean
+    row = table_row(report, "serasac (batch_size=256)")
+    assert row[1] == "2"
+    assert row[2].startswith("5500.0 [")
+    assert row[3] == "5500.0 ± 707.1"
+    assert row[4] == "5520 ± 711"
+    assert row[5].startswith("2875.0 [")
+    assert row[9] == "3.0"
+    assert table_row(report, "serasac (batch_size=64)")[3] == "200.0 ± n/a"
+    # Two serasac groups at 3,000 steps: nothing is compared against one of them
+    assert table_row(report, "masac")[6:9] == ["", "", ""]
+    assert "serasac has several settings here, so no row is compared against it." in report
+    assert table_row(report, "serasac")[2] == "20.0 [20.0, 20.0]"  # the 600-step run alone
+
+
+def test_reference_comparisons_by_hand_and_by_rliable(tmp_path):
+    root = tmp_path / "runs"
+    for run_id, final in enumerate([5000.0, 6000.0, 5500.0], start=1):
+        fake_run(root, "serasac", run_id, run_id, [0.0, 3000.0, final])
+    for run_id, final in enumerate([4000.0, 4400.0, 5800.0], start=1):
+        fake_run(root, "masac", run_id, run_id, [0.0, 2000.0, final])
+    report = report_roots([root], tmp_path / "report", reps=REPS).read_text()
+    serasac, masac = np.array([5000.0, 6000.0, 5500.0]), np.array([4000.0, 4400.0, 5800.0])
+    row = table_row(report, "masac")
+    # Sample std by hand: mean 4733.3, deviations -733.3, -333.3, 1066.7 -> sqrt(1786666.7 / 2) = 945.2
+    assert row[3] == "4733.3 ± 945.2"
+    # P(serasac > masac) by hand: 8 of the 9 pairs favour serasac (5500 < 5800, 5000 < 5800, 6000 > 5800...)
+    wins = sum(float(x > y) + 0.5 * float(x == y) for x in serasac for y in masac) / 9
+    assert wins == pytest.approx(7 / 9)
+    np.random.seed(stats.BOOTSTRAP_SEED)  # rliable resamples with numpy's global generator
+    _, poi_intervals = rly.get_interval_estimates(
+        {"pair": (serasac[:, None], masac[:, None])},
+        metrics.probability_of_improvement,
+        reps=REPS,
     )
-    scalars = load_scalars([tmp_path / "tb"])
-    assert set(scalars) == {"SERASAC"}
-    steps, values = scalars["SERASAC"]["train/td_target_var"][0]
-    assert steps.tolist() == [200, 400] and np.all(values > 0)
-    assert len([tag for tag in scalars["SERASAC"] if tag.startswith("train/kappa_")]) == 5
-    # The same events as a run of the task's variant "serasac", in rl-zoo3's <tb>/<env_name>/<name>_<n> layout
-    shutil.copytree(tmp_path / "tb" / "SERASAC_1", tmp_path / "tb" / "sb3_sera-HalfCheetah-6x1-v0" / "serasac_1")
-    assert split_by_task(load_scalars([tmp_path / "tb"])).keys() == {TASK, None}
-    fake_run(tmp_path / "runs", "serasac", 1, [0.0, 1.0, 2.0])
-    main(["report", str(tmp_path / "runs"), "--tensorboard-log", str(tmp_path / "tb"), "--out", str(tmp_path / "out")])
-    report = capsys.readouterr().out
-    # the task's runs are drawn in the task's section, the rest in a section of their own
-    assert "![sb3_sera/HalfCheetah-6x1-v0 training diagnostics](sb3_sera-HalfCheetah-6x1-v0_diagnostics.png)" in report
-    assert (tmp_path / "out" / "sb3_sera-HalfCheetah-6x1-v0_diagnostics.png").stat().st_size > 0
-    assert "Training diagnostics" in report
-    assert (tmp_path / "out" / "diagnostics.png").stat().st_size > 0
+    low, high = np.ravel(poi_intervals["pair"])
+    assert row[6] == f"{wins:.2f} [{low:.2f}, {high:.2f}]"
+    assert row[7] == f"{scipy_stats.ttest_ind(serasac, masac, equal_var=False).pvalue:.3f}"
+    assert row[8] == f"{(serasac.mean() - masac.mean()) / masac.mean() * 100:+.1f}"
+    # IQM and its interval as rliable computes them
+    np.random.seed(stats.BOOTSTRAP_SEED)
+    points, intervals = rly.get_interval_estimates(
+        {"x": serasac[:, None]},
+        lambda scores: np.array([metrics.aggregate_iqm(scores)]),
+        reps=REPS,
+    )
+    assert table_row(report, "serasac")[2] == f"{points['x'][0]:.1f} [{intervals['x'][0][0]:.1f}, {intervals['x'][1][0]:.1f}]"
 
 
-def test_report_needs_runs(tmp_path):
-    with pytest.raises(ValueError, match="No run folders"):
-        write_report([tmp_path], tmp_path / "out")
+def test_iqm_matches_rliable_on_curves():
+    scores = np.random.default_rng(0).normal(size=(5, 2, 7))
+    point, low, high = stats.iqm_interval(scores, reps=REPS)
+    expected = [metrics.aggregate_iqm(scores[..., index]) for index in range(7)]
+    np.testing.assert_allclose(point, expected)
+    assert np.all(low <= point) and np.all(point <= high)
+
+
+def test_seed_comes_from_the_record_not_the_folder_name(tmp_path):
+    fake_run(tmp_path, "serasac", 1, 7, [0.0, 1.0, 2.0])
+    (run,) = load_runs([tmp_path])[0]
+    assert run.seed == 7 and run.n_timesteps == 3000 and run.hyperparams == {"batch_size": 256, "policy": "CTDEPolicy"}
+
+
+def test_runs_without_records_or_unfinished_are_left_out_with_a_reason(tmp_path):
+    fake_run(tmp_path, "serasac", 1, 0, [0.0, 1.0, 2.0])
+    fake_run(tmp_path, "serasac", 2, 1, [0.0, 1.0, 2.0], finished=False)
+    legacy = tmp_path / "serasac" / "Pendulum-v1_0"
+    legacy.mkdir()
+    np.savez(legacy / "evaluations.npz", timesteps=np.array([1]), results=np.zeros((1, 1)))
+    runs, skipped = load_runs([tmp_path])
+    assert len(runs) == 1
+    reasons = {s.folder.rpartition("/")[2]: s.reason for s in skipped}
+    assert reasons["Pendulum-v1_0"].startswith("no <env_name>/args.yml record")
+    assert reasons["sb3_sera-HalfCheetah-6x1-v0_2"].startswith("unfinished")
+    report = write_report(runs, tmp_path / "report", skipped, reps=REPS).read_text()
+    assert "## Left out" in report and "Pendulum-v1_0: no <env_name>/args.yml record" in report
+
+
+def test_curves_on_unequal_grids_are_interpolated():
+    grid, matrix, note = aligned([([0, 10, 20], [0.0, 10.0, 20.0]), ([5, 25], [50.0, 250.0])])
+    assert grid[0] == 5 and grid[-1] == 20 and len(grid) == 50
+    # both lines are y = x (first) and y = 10x (second) on their own steps
+    np.testing.assert_allclose(matrix[0], grid)
+    np.testing.assert_allclose(matrix[1], 10 * grid)
+    assert note == "runs evaluated at different steps: interpolated onto 50 points from 5 to 20"
+    same = aligned([([1, 2], [3.0, 4.0]), ([1, 2], [5.0, 6.0])])
+    assert same[0].tolist() == [1, 2] and same[2] == ""
+
+
+def test_report_states_an_interpolated_grid(tmp_path):
+    fake_run(tmp_path, "serasac", 1, 0, [0.0, 1.0, 2.0], timesteps=[1000, 2000, 3000])
+    fake_run(tmp_path, "serasac", 2, 1, [0.0, 1.0, 2.0], timesteps=[1500, 2500, 3000])
+    report = write_report(load_runs([tmp_path])[0], tmp_path / "report", reps=REPS).read_text()
+    assert "- serasac: runs evaluated at different steps: interpolated onto 50 points from 1,500 to 3,000" in report
+
+
+def test_paper_figures_from_a_tiny_fixture(tmp_path):
+    root = tmp_path / "runs"
+    for variant, shift in (("serasac", 0.0), ("sera_nolr", -100.0), ("sera_median", -200.0), ("ensemble_mean", -50.0)):
+        for seed in (0, 1):
+            fake_run(root, variant, seed + 1, seed, [0.0, 1000.0 + shift, 2000.0 + shift + seed], bias=1.0, n_critics=5)
+    fake_run(root, "masac", 1, 0, [0.0, 500.0, 1000.0], n_critics=2)
+    for seed in (0, 1):
+        fake_run(tmp_path / "other", "serasac", seed + 1, seed, [0.0, 1.0, 3.0 + seed], env_id="HalfCheetah-v5")
+    out = tmp_path / "report"
+    main(["report", str(root), str(tmp_path / "other"), "--out", str(out), "--reps", str(REPS), "--matrix-step", "2000"])
+    report = (out / "report.md").read_text()
+    stem = "sb3_sera-HalfCheetah-6x1-v0_3000"
+    for figure in ("curves", "bias", "auc", "diagnostics", "correlations"):  # Fig. 4a, 4b, 4c, 5
+        assert (out / f"{stem}_{figure}.png").stat().st_size > 10_000
+        assert f"({stem}_{figure}.png)" in report
+    assert "Correlation matrices at the evaluation nearest 2,000 steps" in report
+    # Two task sections: scores aggregated over tasks for the variant present in both, with a performance profile
+    assert "## Across tasks" in report and "| serasac | 2 x 2 | " in report
+    assert "Left out (not in every section with one settings group and equal run counts): sera_nolr" in report
+    assert (out / "performance_profiles.png").stat().st_size > 10_000
+
+
+def test_report_refuses_to_overwrite_and_needs_runs(tmp_path, capsys):
+    fake_run(tmp_path / "runs", "serasac", 1, 0, [0.0, 1.0, 2.0])
+    main(["report", str(tmp_path / "runs"), "--out", str(tmp_path / "out"), "--reps", str(REPS)])
+    with pytest.raises(SystemExit) as exit_info:
+        main(["report", str(tmp_path / "runs"), "--out", str(tmp_path / "out")])
+    assert exit_info.value.code == 2
+    error = capsys.readouterr().err
+    expected = f"{tmp_path / 'out'} already holds a report.md: choose another --out, or pass --overwrite to replace it"
+    assert error.strip() == f"sb3-sera report: error: {expected}"
+    main(["report", str(tmp_path / "runs"), "--out", str(tmp_path / "out"), "--overwrite", "--reps", str(REPS)])
+    with pytest.raises(ValueError, match="no finished runs"):
+        report_roots([tmp_path / "empty"], tmp_path / "out2")

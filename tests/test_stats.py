@@ -1,10 +1,17 @@
 """Run statistics on fixed inputs, against values computed by hand and by scipy."""
 
+import numpy as np
 import pytest
 from scipy import stats
 
-from sb3_sera.experiments.compare import RunResult, summary_table
-from sb3_sera.experiments.stats import improvement_percent, normalized_auc, welch_p_value
+from sb3_sera.experiments.stats import (
+    improvement_percent,
+    iqm,
+    min_max_normalized,
+    normalized_auc,
+    sample_std,
+    welch_p_value,
+)
 
 
 def test_normalized_auc_by_hand():
@@ -34,16 +41,18 @@ def test_improvement_percent():
         improvement_percent(1.0, 0.0)
 
 
-def test_summary_table_columns():
-    def run(algo, seed, returns):
-        return RunResult(algo, "Pendulum-v1", seed, 300, 10.0, returns[-1], [100, 200, 300], returns)
+def test_sample_std_by_hand():
+    # mean 2, squared deviations 1 + 0 + 1 = 2, over n - 1 = 2: std 1 (the population std would be 0.816)
+    assert sample_std([1.0, 2.0, 3.0]) == pytest.approx(1.0)
+    assert np.isnan(sample_std([4.0]))
 
-    results = [run("serasac", 0, [0.0, 10.0, 20.0]), run("serasac", 1, [0.0, 10.0, 30.0])]
-    results += [run("sac", 0, [0.0, 5.0, 10.0]), run("sac", 1, [0.0, 5.0, 12.0])]
-    table = summary_table(results).splitlines()
-    assert "p vs serasac (Welch)" in table[0]
-    # serasac: finals 20, 30 -> 25.0 ± 5.0; AUC of (0, 10, 20) = 10, of (0, 10, 30) = 12.5 -> 11.2 (11.25)
-    assert table[2].startswith("| serasac | 2 | 25.0 ± 5.0 | 11.2 |  |")
-    # sac: finals 10, 12 -> 11.0 ± 1.0; AUC of (0, 5, 10) = 5, of (0, 5, 12) = 5.5 -> 5.2 (5.25)
-    p_value = stats.ttest_ind([10.0, 12.0], [20.0, 30.0], equal_var=False).pvalue
-    assert table[3].startswith(f"| sac | 2 | 11.0 ± 1.0 | 5.2 | {p_value:.3f} |")
+
+def test_iqm_by_hand():
+    # 8 runs on one task: the middle half is 3, 4, 5, 6 -> 4.5 (the mean, 12.375, is pulled up by 50 and 30)
+    scores = np.array([1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 30.0, 50.0])[:, None]
+    assert iqm(scores)[0] == pytest.approx(4.5)
+
+
+def test_min_max_normalized():
+    np.testing.assert_allclose(min_max_normalized(np.array([-10.0, 0.0, 10.0]), -10.0, 10.0), [0.0, 0.5, 1.0])
+    np.testing.assert_allclose(min_max_normalized(np.array([3.0]), 3.0, 3.0), [0.0])

@@ -141,9 +141,11 @@ def test_train_then_enjoy_a_zoo_run(tmp_path):
         curves = pickle.load(file)
     assert list(curves["sb3_sera-SimpleSpread-v0"]) == [f"MASAC-{folder}"]
     # The report reads the zoo's run folders too, bias included
-    reported = sb3_sera("report", folder, "--out", str(tmp_path / "report"))
-    assert "### Pendulum-v1" in reported.stdout and "### sb3_sera/SimpleSpread-v0" in reported.stdout
-    assert (tmp_path / "report" / "Pendulum-v1_bias.png").exists()
+    # The report reads the zoo's run folders and records too (seed and budget from args.yml), bias and diagnostics
+    reported = sb3_sera("report", folder, "--out", str(tmp_path / "report"), "--reps", "200")
+    assert "## Pendulum-v1, 300 steps" in reported.stdout and "## sb3_sera/SimpleSpread-v0, 200 steps" in reported.stdout
+    for figure in ("bias", "diagnostics", "correlations"):
+        assert (tmp_path / "report" / f"Pendulum-v1_300_{figure}.png").exists()
 
 
 def test_two_workers_tune_one_study(tmp_path):

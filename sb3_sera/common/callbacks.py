@@ -1,4 +1,7 @@
-"""Evaluation that also measures the initial-state value bias of the critics (paper section 6, Fig. 4a)."""
+"""
+Evaluation that also measures the initial-state value bias of the critics (paper section 6, Fig. 4a) and, for the SAC
+family, the critics' TD-target variance and correlations on a replay batch (Fig. 4c and 5).
+"""
 
 import inspect
 import warnings
@@ -11,10 +14,15 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.callbacks import EvalCallback
 from stable_baselines3.common.policies import ActorCriticPolicy
+from stable_baselines3.sac import SAC
 from torch import nn
 
-#: File written beside ``evaluations.npz`` in the callback's ``log_path``
+from sb3_sera.sera import SERASAC
+from sb3_sera.sera.aggregation import correlation_matrix, mean_off_diagonal
+
+#: Files written beside ``evaluations.npz`` in the callback's ``log_path``
 BIAS_FILE = "initial_state_bias.npz"
+DIAGNOSTICS_FILE = "critic_diagnostics.npz"
 
 
 class InitialStateBiasCallback(EvalCallback):
@@ -27,12 +35,20 @@ class InitialStateBiasCallback(EvalCallback):
     Per evaluation, the means over episodes go to the logger (``eval/initial_state_value``,
     ``eval/discounted_return``, ``eval/initial_state_bias``) and, with a ``log_path``, to ``initial_state_bias.npz``
     (``timesteps``, ``values``, ``discounted_returns``, one row per evaluation and one column per episode).
+    For a model of the SAC family (SAC, MASAC, SERASAC) with a filled replay buffer, each evaluation also records
+    :func:`critic_diagnostics` on ``diagnostics_batch_size`` replayed transitions to ``critic_diagnostics.npz``
+    (one row per evaluation), with the random generators' states put back so that training is unchanged.
     Takes the arguments of ``EvalCallback``. For a model with neither Q critics over Box actions nor a
     feed-forward value function (DQN, recurrent policies), it warns once and evaluates as ``EvalCallback`` does.
+
+    :param diagnostics_batch_size: transitions drawn from the replay buffer for the critic diagnostics
     """
 
-    def __init__(self, *args: Any, **kwargs: Any) -> None:
+    def __init__(self, *args: Any, diagnostics_batch_size: int = 1024, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
+        self.diagnostics_batch_size = diagnostics_batch_size
+        #: Per evaluation, :func:`critic_diagnostics` of the model (SAC family only)
+        self.diagnostics: dict[str, list[np.ndarray]] = {}
         self._values: list[float] = []
         self._returns: list[float] = []
         self._running: dict[int, tuple[float, float]] = {}
@@ -108,7 +124,80 @@ class InitialStateBiasCallback(EvalCallback):
                     values=self.bias_values,
                     discounted_returns=self.bias_returns,
                 )
+        if evaluating:
+            self._record_critic_diagnostics()
         return continue_training
+
+    def _record_critic_diagnostics(self) -> None:
+        model = self.model
+        buffer = getattr(model, "replay_buffer", None)
+        if not isinstance(model, SAC) or buffer is None or buffer.size() == 0:
+            return
+        numpy_state = np.random.get_state()
+        devices = [model.device] if model.device.type == "cuda" else []
+        with th.random.fork_rng(devices=devices):
+            values = critic_diagnostics(model, self.diagnostics_batch_size)
+        np.random.set_state(numpy_state)
+        values["timesteps"] = np.array(self.num_timesteps)
+        for key, value in values.items():
+            self.diagnostics.setdefault(key, []).append(value)
+        for key in ("td_target_var", "critic_corr", "td_error_corr"):
+            self.logger.record(f"eval/{key}", float(values[key]))
+        if self.log_path is not None:
+            arrays: dict[str, Any] = {key: np.stack(value) for key, value in self.diagnostics.items()}
+            np.savez(Path(self.log_path).parent / DIAGNOSTICS_FILE, **arrays)
+
+
+def critic_diagnostics(model: SAC, batch_size: int) -> dict[str, np.ndarray]:
+    """
+    The critics of a SAC-family model on ``batch_size`` transitions from its replay buffer: the TD target ``y`` the
+    model trains on (SERASAC: its aggregation of the target critics; SAC and MASAC: the minimum of the twin target
+    critics), the online values ``Q_i(s, a)`` and the TD errors ``delta_i = y - Q_i(s, a)``.
+
+    :return: ``td_target_var`` (batch variance of ``y``), ``critic_corr_matrix`` and ``td_error_corr_matrix``
+        (K x K Pearson correlations over the batch of the values and of the TD errors), their mean off-diagonal
+        entries ``critic_corr`` and ``td_error_corr``, and for SERASAC the critics' current learning rates
+        ``critic_lr`` (K values)
+    """
+    assert model.replay_buffer is not None
+    replay_data = model.replay_buffer.sample(batch_size, env=model._vec_normalize_env)
+    discounts = replay_data.discounts if replay_data.discounts is not None else model.gamma
+    with th.no_grad():
+        ent_coef = th.exp(model.log_ent_coef) if model.log_ent_coef is not None else model.ent_coef_tensor
+        next_actions, next_log_prob = model.actor.action_log_prob(replay_data.next_observations)
+        next_log_prob = next_log_prob.reshape(-1, 1)
+        if isinstance(model, SERASAC):
+            update = model._critic_update_eager(
+                replay_data.observations,
+                replay_data.actions,
+                replay_data.next_observations,
+                replay_data.rewards,
+                replay_data.dones,
+                discounts,
+                next_actions,
+                next_log_prob,
+                ent_coef,
+            )
+            target_q_values, current_q_values = update.target_q_values, update.current_q_values
+        else:
+            next_q_values = th.cat(model.critic_target(replay_data.next_observations, next_actions), dim=1)
+            next_q = th.min(next_q_values, dim=1, keepdim=True).values - ent_coef * next_log_prob
+            target_q_values = replay_data.rewards + (1 - replay_data.dones) * discounts * next_q
+            current_q_values = th.cat(model.critic(replay_data.observations, replay_data.actions), dim=1)
+        critic_corr = correlation_matrix(current_q_values)
+        td_error_corr = correlation_matrix(target_q_values - current_q_values)
+        values = {
+            "td_target_var": target_q_values.var(unbiased=False),
+            "critic_corr_matrix": critic_corr,
+            "critic_corr": mean_off_diagonal(critic_corr),
+            "td_error_corr_matrix": td_error_corr,
+            "td_error_corr": mean_off_diagonal(td_error_corr),
+        }
+    result = {key: value.cpu().numpy() for key, value in values.items()}
+    if isinstance(model, SERASAC):
+        rates = {group["critic_index"]: group["lr"] for group in model.critic.optimizer.param_groups}
+        result["critic_lr"] = np.array([rates[index] for index in range(model.critic.n_critics)])
+    return result
 
 
 def initial_state_bias(values: Sequence[Sequence[float]], discounted_returns: Sequence[Sequence[float]]) -> list[float]:

@@ -3,7 +3,7 @@ A grid of runs (algorithm variants x tasks x seeds) from a YAML file, on a local
 
 The grid file::
 
-    algorithms:              # variant name -> its algorithm and hyperparameters
+    algorithms:              # variant name -> its algorithm and hyperparameter overrides
       serasac: {}
       ensemble_mean: {algo: serasac, target_aggregation: mean}
       masac: {}
@@ -12,29 +12,31 @@ The grid file::
     n_timesteps: 50000
     eval_freq: 5000          # optional, default n_timesteps / 10
     eval_episodes: 5         # optional
-    hyperparams: {learning_starts: 5000}   # optional, for every variant (a variant's own values win)
+    hyperparams: {learning_starts: 5000}   # optional overrides for every variant (a variant's own values win)
 
-Everything is checked before the first run starts. Each run writes its rl-zoo3-style folder
-``<out>/<variant>/<env_name>_<seed>/``; a finished run is never run again, so an interrupted grid resumes.
+Each run starts from the task's entry in ``hyperparams/<algo>.yml`` (as ``sb3-sera train``), then the grid's
+``hyperparams``, then the variant's own values. Everything is checked before the first run starts (each variant's
+model is built once on each task). Each run writes its rl-zoo3-style folder ``<out>/<variant>/<env_name>_<id>/``
+with its records; a finished run is never run again, so an interrupted grid resumes.
 """
 
-import inspect
 from pathlib import Path
 from typing import Any
 
-import gymnasium as gym
 import yaml
 
-from sb3_sera.experiments.compare import RunResult, RunSpec, algorithm_classes, env_name, execute, summary_table
+from sb3_sera.experiments.runs import RunResult, RunSpec, algorithm_classes, check_specs, check_task, execute, make_spec
 
 GRID_KEYS = {"algorithms", "tasks", "seeds", "n_timesteps", "eval_freq", "eval_episodes", "hyperparams"}
 
 
-def load_grid(path: str | Path) -> list[RunSpec]:
+def load_grid(path: str | Path, num_threads: int | None = 1, device: str = "auto") -> list[RunSpec]:
     """
     Read and check a grid file; raise ``ValueError`` naming any unknown key, algorithm, task or hyperparameter
     with the allowed ones.
 
+    :param num_threads: torch threads of each run (None: torch's default)
+    :param device: torch device of each run
     :return: the runs, variant by variant, then task by task, then seed by seed
     """
     grid = yaml.safe_load(Path(path).read_text())
@@ -54,43 +56,40 @@ def load_grid(path: str | Path) -> list[RunSpec]:
         algo = params.pop("algo", name)
         if algo not in classes:
             raise ValueError(f"{path}: variant {name!r} names unknown algorithm {algo!r}; known: {sorted(classes)}")
-        hyperparams = {**common, **params}
-        accepted = set(inspect.signature(classes[algo]).parameters) - {"policy", "env", "seed", "verbose"}
-        unknown = sorted(set(hyperparams) - accepted)
-        if unknown:
-            raise ValueError(
-                f"{path}: variant {name!r}: unknown hyperparameter(s) {unknown} for {algo}; allowed: {sorted(accepted)}"
-            )
-        variants[name] = (algo, hyperparams)
-    unknown_tasks = [task for task in grid["tasks"] if task not in gym.registry]
-    if unknown_tasks:
-        registered = sorted(env_id for env_id in gym.registry if env_id.startswith("sb3_sera/"))
-        raise ValueError(f"{path}: unknown task(s) {unknown_tasks}; registered ids include {registered} and Gymnasium's")
+        variants[name] = (algo, {**common, **params})
+    for task in grid["tasks"]:
+        try:
+            check_task(task)
+        except ValueError as error:
+            raise ValueError(f"{path}: {error}") from None
     n_timesteps = int(grid["n_timesteps"])
     eval_freq = int(grid.get("eval_freq", max(n_timesteps // 10, 1)))
     episodes = int(grid.get("eval_episodes", 5))
-    return [
-        RunSpec(name, algo, task, int(seed), n_timesteps, hyperparams, eval_freq, episodes)
-        for name, (algo, hyperparams) in variants.items()
-        for task in grid["tasks"]
-        for seed in grid["seeds"]
-    ]
+    specs = []
+    for name, (algo, overrides) in variants.items():
+        for task in grid["tasks"]:
+            for seed in grid["seeds"]:
+                try:
+                    spec = make_spec(name, algo, task, seed, n_timesteps, overrides, eval_freq, episodes, num_threads, device)
+                except ValueError as error:
+                    raise ValueError(f"{path}: variant {error}") from None
+                specs.append(spec)
+    check_specs(specs)
+    return specs
 
 
 def run_grid(
-    path: str | Path, out_dir: str, n_jobs: int | None = None, ray_address: str | None = None
-) -> dict[str, list[RunResult]]:
+    path: str | Path,
+    out_dir: str | Path,
+    n_jobs: int | None = None,
+    ray_address: str | None = None,
+    num_threads: int | None = 1,
+    device: str = "auto",
+) -> list[RunResult]:
     """
-    Run a grid file's runs (see :func:`load_grid`) and write ``<out>/<env_name>_summary.md`` per task.
+    Run a grid file's runs (see :func:`load_grid`).
 
-    :return: the results by task
+    :return: the results, in the grid's order
     """
-    specs = load_grid(path)
-    results = execute(specs, out_dir, n_jobs=n_jobs, ray_address=ray_address)
-    by_task: dict[str, list[RunResult]] = {}
-    for result in results:
-        by_task.setdefault(result.env_id, []).append(result)
-    for task, task_results in by_task.items():
-        table = summary_table(task_results)
-        (Path(out_dir) / f"{env_name(task)}_summary.md").write_text(f"{task}\n\n{table}\n")
-    return by_task
+    specs = load_grid(path, num_threads, device)
+    return execute(specs, out_dir, n_jobs=n_jobs, ray_address=ray_address)

@@ -1,52 +1,67 @@
 """The ``sb3-sera`` command line (also ``python -m sb3_sera``)."""
 
 import argparse
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from rl_zoo3.utils import StoreDict
+import yaml
 
-from sb3_sera.experiments import bench, compare, report, zoo
+from sb3_sera.experiments import bench, compare, report, stats, zoo
+from sb3_sera.experiments.runs import RunResult, default_threads, env_name
+
+
+def _print_report(results: list[RunResult], out: str, name: str, reps: int) -> None:
+    """Report the runs just made in a new ``<out>/reports/<name>_<n>/`` and print its tables."""
+    folder = report.next_report_folder(Path(out) / "reports", name)
+    path = report.write_report(results, folder, reps=reps, sources=[out])
+    print(f"\n{path.read_text()}\nReport: {path}\nRun folders: {out}/<variant>/<env_name>_<id>/")
 
 
 def _compare(args: argparse.Namespace) -> None:
-    hyperparams = None
-    if args.hyperparams:
-        defaults = compare.DEFAULT_HYPERPARAMS if args.env == compare.DEFAULT_ENV else {}
-        hyperparams = {algo: {**defaults.get(algo, {}), **args.hyperparams} for algo in args.algos}
+    common, per_algo = compare.parse_params(args.hyperparams or [], args.algos)
     results = compare.run_comparison(
-        hyperparams=hyperparams,
         algos=args.algos,
         env_id=args.env,
         seeds=args.seeds,
         n_timesteps=args.n_timesteps,
         out_dir=args.out,
+        params=common,
+        algo_params=per_algo,
         eval_freq=args.eval_freq,
         n_eval_episodes=args.eval_episodes,
         n_jobs=args.n_jobs,
+        num_threads=args.num_threads,
+        device=args.device,
     )
-    table = compare.summary_table(results)
-    out = Path(args.out)
-    name = compare.env_name(args.env)
-    plot = out / f"{name}_learning_curves.png"
-    compare.plot_learning_curves(results, plot)
-    (out / f"{name}_summary.md").write_text(f"{args.env}, {args.n_timesteps} steps, seeds {list(args.seeds)}\n\n{table}\n")
-    print(f"\n{args.env}, {args.n_timesteps} steps, seeds {list(args.seeds)}\n{table}")
-    print(f"\nLearning curves: {plot}\nRun folders: {out}/<algo>/{name}_<seed>/")
+    _print_report(results, args.out, env_name(args.env), args.reps)
 
 
 def _bench(args: argparse.Namespace) -> None:
-    by_task = bench.run_grid(args.grid, args.out, n_jobs=args.n_jobs, ray_address=args.ray_address)
-    for task, results in by_task.items():
-        print(f"\n{task}\n{compare.summary_table(results)}")
-    print(f"\nRun folders and summaries: {args.out}")
+    n_jobs = args.n_jobs or os.cpu_count() or 1
+    threads = args.num_threads or (1 if args.ray_address else default_threads(n_jobs))
+    results = bench.run_grid(
+        args.grid, args.out, n_jobs=n_jobs, ray_address=args.ray_address, num_threads=threads, device=args.device
+    )
+    _print_report(results, args.out, Path(args.grid).stem, args.reps)
 
 
 def _report(args: argparse.Namespace) -> None:
-    path = report.write_report(args.roots, args.out, tensorboard_dirs=args.tensorboard_log or ())
+    path = report.report_roots(args.roots, args.out, overwrite=args.overwrite, reps=args.reps, matrix_step=args.matrix_step)
     print(path.read_text())
     print(f"\nReport: {path}")
+
+
+def _add_run_flags(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--num-threads",
+        type=int,
+        default=None,
+        help="torch threads per run (default: the cores divided among the runs at a time, at least 1)",
+    )
+    parser.add_argument("--device", default="auto", help="torch device of every run: auto, cpu, cuda, cuda:1, ...")
+    parser.add_argument("--reps", type=int, default=stats.REPS, help="bootstrap resamples of the report's intervals")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -57,8 +72,9 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True)
     comp = commands.add_parser(
         "compare",
-        help="train algorithms on one task for several seeds, print a table and plot learning curves",
-        description="Train algorithms on one task for several seeds, print a table and plot learning curves.",
+        help="train algorithms on one task for several seeds with hyperparams/<algo>.yml, then report them",
+        description=compare.__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     comp.add_argument("--algos", nargs="+", default=list(compare.DEFAULT_ALGOS), help="algorithm names")
     comp.add_argument("--env", default=compare.DEFAULT_ENV, help="Gymnasium id")
@@ -74,10 +90,11 @@ def build_parser() -> argparse.ArgumentParser:
         "-params",
         "--hyperparams",
         nargs="+",
-        action=StoreDict,
         default=None,
-        help="hyperparameters for every algorithm, as rl-zoo3's -params: learning_starts:10000 batch_size:256",
+        help="overrides of hyperparams/<algo>.yml: key:value for every algorithm (learning_starts:1000), "
+        "algo:key:value for one (serasac:sera_alpha:0.3); all checked before the first run",
     )
+    _add_run_flags(comp)
     comp.set_defaults(func=_compare)
     grid = commands.add_parser(
         "bench",
@@ -89,16 +106,21 @@ def build_parser() -> argparse.ArgumentParser:
     grid.add_argument("--out", default="logs/bench", help="root of the run folders")
     grid.add_argument("--n-jobs", type=int, default=None, help="local runs at a time (default: one per core)")
     grid.add_argument("--ray-address", default=None, help="run on this Ray cluster ('auto': the one started here)")
+    _add_run_flags(grid)
     grid.set_defaults(func=_bench)
     rep = commands.add_parser(
         "report",
-        help="a Markdown report (paper tables, Welch tests, AUC, figures) from rl-zoo3-style run folders",
+        help="a Markdown report (IQM and bootstrap intervals, paper tables, figures) from rl-zoo3-style run folders",
         description=report.__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    rep.add_argument("roots", nargs="+", help="folders holding <algo>/<env>_<id>/evaluations.npz")
-    rep.add_argument("--tensorboard-log", nargs="+", default=None, help="TensorBoard folders of the same runs")
+    rep.add_argument("roots", nargs="+", help="folders holding <variant>/<env_name>_<id>/ run folders")
     rep.add_argument("--out", default="logs/report", help="folder for report.md and its figures")
+    rep.add_argument("--overwrite", action="store_true", help="replace a report already in --out")
+    rep.add_argument("--reps", type=int, default=stats.REPS, help="bootstrap resamples of every interval")
+    rep.add_argument(
+        "--matrix-step", type=int, default=None, help="step of the correlation matrices (default: the last evaluation)"
+    )
     rep.set_defaults(func=_report)
     for command in zoo.ZOO_COMMANDS:
         # Listed for --help; main() hands their arguments to rl-zoo3 untouched
@@ -113,5 +135,11 @@ def main(argv: Sequence[str] | None = None) -> None:
         # rl-zoo3 parses these arguments itself: every zoo flag keeps working
         zoo.run_zoo(argv[0], argv[1:])
         return
-    args = build_parser().parse_args(argv)
-    args.func(args)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        args.func(args)
+    except (ValueError, RuntimeError, FileNotFoundError, yaml.YAMLError) as error:
+        # A user's mistake or a failed run: one line, no traceback
+        message = " ".join(str(error).split())
+        parser.exit(2 if isinstance(error, ValueError) else 1, f"sb3-sera {args.command}: error: {message}\n")

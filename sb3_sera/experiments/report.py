@@ -1,32 +1,33 @@
 """
-A Markdown report from rl-zoo3-style run folders (``<root>/<algo>/<env_name>_<id>/evaluations.npz``, as written by
-``sb3-sera train``, ``compare`` and ``bench``) and, optionally, the TensorBoard logs of the same runs.
+A Markdown report from rl-zoo3-style run folders (``<root>/<variant>/<env_name>_<id>/``, as written by
+``sb3-sera train``, ``compare`` and ``bench``), read from each run's records (``<env_name>/args.yml`` and
+``config.yml``), never from folder names.
 
-Per task: the paper's Table 1/2 layout with our final evaluation returns beside the paper's, the normalized AUC,
-Welch's t-test p-value against SERASAC and SERASAC's improvement in percent; learning curves; the initial-state
-value bias over training (from ``initial_state_bias.npz``, written by the evaluations of ``train``, ``compare`` and
-``bench``); and, from
-TensorBoard, the TD-target variance, the inter-critic correlation and each critic's kappa over training.
+Runs are grouped by variant, task, budget and hyperparameters; runs that differ in any of these are never averaged
+together: each task and budget has its own section, and a variant run with several settings gets a row per setting,
+with a note that says what differs. Per section: a table with the interquartile mean (IQM) of the final evaluation
+returns and its 95% stratified-bootstrap confidence interval (``rliable``), the mean ± sample standard deviation
+beside the paper's values, the normalized AUC (IQM and interval), the probability that SERASAC improves on each
+baseline (with interval), Welch's p-value and SERASAC's improvement in percent; learning curves (IQM and interval
+per evaluation); the initial-state value bias over training (paper Fig. 4a); the normalized AUC as bars (Fig. 4b);
+the TD-target variance and the critics' value and TD-error correlations over training (Fig. 4c); and the critics'
+K x K correlation matrices at one evaluation (Fig. 5). Several sections together add min-max normalized scores
+aggregated over tasks and performance profiles.
 """
 
 import json
-import math
 from collections import defaultdict
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
-import gymnasium as gym
 import numpy as np
+from numpy.typing import ArrayLike
 
-from sb3_sera.common.callbacks import BIAS_FILE, initial_state_bias
-from sb3_sera.experiments.compare import (
-    RunResult,
-    env_name,
-    plot_initial_state_bias,
-    plot_learning_curves,
-    summarize,
-)
-from sb3_sera.experiments.stats import improvement_percent
+from sb3_sera.common.callbacks import DIAGNOSTICS_FILE
+from sb3_sera.experiments import stats
+from sb3_sera.experiments.runs import RESULT_FILE, RunResult, env_name, load_result, read_record
 
 #: Paper Table 1 (multi-agent, 300K steps) and Table 2 (single-agent): (mean, std) of the team return
 PAPER_RESULTS: dict[str, dict[str, tuple[float, float]]] = {
@@ -54,188 +55,586 @@ PAPER_RESULTS: dict[str, dict[str, tuple[float, float]]] = {
     "HalfCheetah-v5": {"SERA": (6056, 439), "SUNRISE": (5613, 570), "ACE": (3923, 480)},
     "Humanoid-v5": {"SERA": (4982.6, 510), "SUNRISE": (4515.3, 600), "ACE": (3908.6, 582)},
 }  # fmt: skip
-#: Our run names for the paper's columns
-PAPER_NAMES = {"serasac": "SERA", "ensemble_mean": "Ensemble Mean", "masac": "MASAC", "matd3": "MATD3", "mappo": "MAPPO"}
+#: Our variant names for the paper's columns
+PAPER_NAMES = {
+    "serasac": "SERA", "ensemble_mean": "Ensemble Mean", "masac": "MASAC", "matd3": "MATD3", "mappo": "MAPPO",
+    "sera_nolr": "SERA-NoLR", "sera_median": "SERA-Median",
+}  # fmt: skip
 REFERENCE = "serasac"
-DIAGNOSTICS = ("train/td_target_var", "train/critic_corr")
+#: Variants in the order tables list them and colours are given (others follow, alphabetically)
+VARIANT_ORDER = ("serasac", "sera_nolr", "sera_median", "ensemble_mean", "sac", "masac", "matd3", "maddpg", "mappo")
+#: Points of the common grid onto which curves evaluated at different steps are interpolated
+GRID_POINTS = 50
+#: What every interval in the report is
+INTERVAL = "95% stratified-bootstrap confidence interval (rliable, percentile method)"
 
 
-def _env_ids() -> dict[str, str]:
-    """Folder names back to env ids (rl-zoo3 writes slashes as dashes)."""
-    return {env_name(env_id): env_id for env_id in gym.registry}
+@dataclass
+class Skipped:
+    """A folder the report did not read, and why."""
+
+    folder: str
+    reason: str
 
 
-def load_runs(roots: Sequence[str | Path]) -> list[RunResult]:
+@dataclass
+class RunGroup:
+    """Runs of one variant on one task with one budget and one set of hyperparameters."""
+
+    variant: str
+    env_id: str
+    n_timesteps: int
+    hyperparams: dict[str, Any]
+    runs: list[RunResult] = field(default_factory=list)
+    #: The variant's name, with the settings that set this group apart from the variant's other groups
+    label: str = ""
+
+    @property
+    def finals(self) -> np.ndarray:
+        """Final evaluation returns, one per run."""
+        return np.array([run.final_return for run in self.runs])
+
+    @property
+    def aucs(self) -> np.ndarray:
+        """Normalized AUC of each run's learning curve, on its own evaluation steps."""
+        return np.array([stats.normalized_auc(run.timesteps, run.returns) for run in self.runs])
+
+
+def is_finished(folder: Path, args: dict[str, Any]) -> bool:
+    """A run of ``compare``/``bench`` wrote ``result.json``; one of ``sb3-sera train`` saved its final model."""
+    if (folder / RESULT_FILE).exists():
+        return True
+    return "variant" not in args and (folder / f"{env_name(str(args.get('env', '')))}.zip").exists()
+
+
+def load_runs(roots: Sequence[str | Path]) -> tuple[list[RunResult], list[Skipped]]:
     """
-    Every run under the roots: ``<root>/<algo>/<env_name>_<id>/evaluations.npz``, with the initial-state bias of
-    its ``initial_state_bias.npz`` where there is one.
+    Every finished run under the roots (``<root>/<variant>/<env_name>_<id>/``), and the folders left out with why:
+    no record of the run's settings, no evaluations, or not finished.
     """
-    ids = _env_ids()
-    runs = []
+    runs, skipped = [], []
     for root in roots:
-        for evaluations_file in sorted(Path(root).glob("*/*/evaluations.npz")):
-            folder = evaluations_file.parent
-            name, _, run_id = folder.name.rpartition("_")
-            evaluations = np.load(evaluations_file)
-            returns = evaluations["results"].mean(axis=1)
-            result_file = folder / "result.json"
-            wall_time = json.loads(result_file.read_text())["wall_time_s"] if result_file.exists() else math.nan
-            timesteps = [int(t) for t in evaluations["timesteps"]]
-            bias: list[float] = []
-            if (folder / BIAS_FILE).exists():
-                records = np.load(folder / BIAS_FILE)
-                bias = initial_state_bias(records["values"], records["discounted_returns"])
-            runs.append(
-                RunResult(
-                    algo=folder.parent.name,
-                    env_id=ids.get(name, name),
-                    seed=int(run_id) if run_id.isdigit() else 0,
-                    n_timesteps=timesteps[-1],
-                    wall_time_s=wall_time,
-                    final_return=float(returns[-1]),
-                    timesteps=timesteps,
-                    returns=[float(r) for r in returns],
-                    initial_state_bias=bias,
+        for folder in sorted(path for path in Path(root).glob("*/*") if path.is_dir()):
+            evaluated = (folder / "evaluations.npz").exists()
+            records = sorted(folder.glob("*/args.yml"))
+            if not evaluated and not records:
+                continue  # not a run folder
+            if not records:
+                skipped.append(
+                    Skipped(str(folder), "no <env_name>/args.yml record: its seed, budget and settings are unknown")
                 )
-            )
-    return runs
+            elif not evaluated:
+                skipped.append(Skipped(str(folder), "no evaluations.npz (train with --eval-freq)"))
+            elif not is_finished(folder, read_record(records[0])):
+                skipped.append(Skipped(str(folder), "unfinished: no result.json (compare, bench) or final model (train)"))
+            else:
+                runs.append(load_result(folder))
+    return runs, skipped
 
 
-def task_table(env_id: str, runs: Sequence[RunResult]) -> str:
-    """One task's rows: ours beside the paper's, normalized AUC, Welch p and SERASAC's improvement."""
-    paper = PAPER_RESULTS.get(env_id, {})
-    summaries = summarize(runs, REFERENCE)
-    algos = sorted(summaries, key=lambda algo: (algo != REFERENCE, algo))
-    budget = max(run.n_timesteps for run in runs)
-    lines = [
-        f"### {env_id} (our runs: {budget:,} steps)",
-        "",
-        f"| algorithm | runs | final return (mean ± std) | paper at 300K (mean ± std) | normalized AUC "
-        f"| p vs {REFERENCE} (Welch) | {REFERENCE} improvement % | initial-state bias (last evaluation) |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for algo in algos:
-        summary = summaries[algo]
-        values, p_value = summary.finals, summary.p_value
-        paper_value = paper.get(PAPER_NAMES.get(algo, ""))
-        paper_cell = "" if paper_value is None else f"{paper_value[0]:g} ± {paper_value[1]:g}"
-        improvement = None
-        if algo != REFERENCE and REFERENCE in summaries and values.mean() != 0:
-            improvement = improvement_percent(float(summaries[REFERENCE].finals.mean()), float(values.mean()))
-        biases = [run.initial_state_bias[-1] for run in runs if run.algo == algo and run.initial_state_bias]
-        lines.append(
-            f"| {algo} | {len(values)} | {values.mean():.1f} ± {values.std():.1f} | {paper_cell} | {summary.auc:.1f} "
-            f"| {'' if p_value is None else f'{p_value:.3f}'} | {'' if improvement is None else f'{improvement:+.1f}'} "
-            f"| {f'{np.mean(biases):.1f}' if biases else ''} |"
+def variant_rank(variant: str) -> tuple[int, str]:
+    """Sort key: the known variants in :data:`VARIANT_ORDER`, then the others alphabetically."""
+    return (VARIANT_ORDER.index(variant) if variant in VARIANT_ORDER else len(VARIANT_ORDER), variant)
+
+
+def group_runs(runs: Sequence[RunResult]) -> list[RunGroup]:
+    """
+    Runs grouped by (variant, task, budget, hyperparameters), ordered by task, budget and variant; a variant with
+    several groups in one task and budget gets labels that name the settings that differ.
+    """
+    groups: dict[tuple[str, str, int, str], RunGroup] = {}
+    for run in runs:
+        key = (run.variant, run.env_id, run.n_timesteps, json.dumps(run.hyperparams, sort_keys=True, default=str))
+        group = groups.setdefault(key, RunGroup(run.variant, run.env_id, run.n_timesteps, run.hyperparams))
+        group.runs.append(run)
+    ordered = sorted(
+        groups.values(),
+        key=lambda g: (
+            g.env_id,
+            g.n_timesteps,
+            variant_rank(g.variant),
+            json.dumps(g.hyperparams, sort_keys=True, default=str),
+        ),
+    )
+    for group in ordered:
+        siblings = [
+            g for g in ordered if (g.variant, g.env_id, g.n_timesteps) == (group.variant, group.env_id, group.n_timesteps)
+        ]
+        differing = differing_keys([g.hyperparams for g in siblings])
+        group.label = (
+            group.variant if len(siblings) == 1 else f"{group.variant} ({settings_text(group.hyperparams, differing)})"
         )
-    others = [name for name in paper if name not in {PAPER_NAMES.get(algo) for algo in algos}]
+    return ordered
+
+
+def differing_keys(settings: Sequence[dict[str, Any]]) -> list[str]:
+    """The keys whose values are not the same in all of ``settings`` (a missing key counts as a value)."""
+    keys = sorted(set().union(*settings)) if settings else []
+    return [key for key in keys if len({json.dumps(s.get(key, "unset"), default=str) for s in settings}) > 1]
+
+
+def settings_text(hyperparams: dict[str, Any], keys: Sequence[str]) -> str:
+    return ", ".join(f"{key}={hyperparams.get(key, 'unset')}" for key in keys)
+
+
+def aligned(series: Sequence[tuple[ArrayLike, ArrayLike]]) -> tuple[np.ndarray, np.ndarray, str]:
+    """
+    Curves of several runs on one grid: their own steps when all share them, else ``GRID_POINTS`` points over the
+    steps all of them cover, each curve interpolated linearly.
+
+    :param series: per run, its steps and values
+    :return: the grid, the values (runs x points) and a sentence saying which grid it is
+    """
+    steps = [np.asarray(t, dtype=float) for t, _ in series]
+    values = [np.asarray(v, dtype=float) for _, v in series]
+    if all(s.shape == steps[0].shape and np.array_equal(s, steps[0]) for s in steps):
+        return steps[0], np.stack(values), ""
+    start, stop = max(s[0] for s in steps), min(s[-1] for s in steps)
+    if stop <= start:
+        stop = start
+    grid = np.linspace(start, stop, GRID_POINTS)
+    matrix = np.stack([np.interp(grid, s, v) for s, v in zip(steps, values, strict=True)])
+    return (
+        grid,
+        matrix,
+        f"runs evaluated at different steps: interpolated onto {GRID_POINTS} points from {start:,.0f} to {stop:,.0f}",
+    )
+
+
+def iqm_cell(values: np.ndarray, reps: int) -> str:
+    """``IQM [low, high]`` of one value per run."""
+    point, low, high = (float(v[0]) for v in stats.iqm_interval(values[:, None], reps))
+    return f"{point:.1f} [{low:.1f}, {high:.1f}]"
+
+
+def section_table(groups: Sequence[RunGroup], reps: int) -> list[str]:
+    """One task and budget: a row per group (see the module's docstring), and what its columns are."""
+    env_id, budget = groups[0].env_id, groups[0].n_timesteps
+    paper = PAPER_RESULTS.get(env_id, {})
+    references = [group for group in groups if group.variant == REFERENCE]
+    reference = references[0] if len(references) == 1 else None
+    lines = [
+        f"| variant | n | final return IQM [95% CI] | final return mean ± std | paper at 300K (mean ± std) "
+        f"| normalized AUC IQM [95% CI] | P({REFERENCE} > variant) [95% CI] | Welch p vs {REFERENCE} "
+        f"| {REFERENCE} improvement % | initial-state bias (last) | wall time s |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for group in groups:
+        finals, aucs = group.finals, group.aucs
+        paper_value = paper.get(PAPER_NAMES.get(group.variant, ""))
+        paper_cell = "" if paper_value is None else f"{paper_value[0]:g} ± {paper_value[1]:g}"
+        improvement_cell = p_cell = poi_cell = ""
+        if reference is not None and group is not reference:
+            p_value = stats.welch_p_value(reference.finals, finals)
+            p_cell = "" if p_value is None else f"{p_value:.3f}"
+            poi = stats.probability_of_improvement(reference.finals[:, None], finals[:, None], reps)
+            poi_cell = f"{poi[0]:.2f} [{poi[1]:.2f}, {poi[2]:.2f}]"
+            if finals.mean() != 0:
+                improvement_cell = f"{stats.improvement_percent(float(reference.finals.mean()), float(finals.mean())):+.1f}"
+        biases = [run.initial_state_bias[-1] for run in group.runs if run.initial_state_bias]
+        walls = [run.wall_time_s for run in group.runs if np.isfinite(run.wall_time_s)]
+        std = stats.sample_std(finals)
+        lines.append(
+            f"| {group.label} | {len(finals)} | {iqm_cell(finals, reps)} "
+            f"| {finals.mean():.1f} ± {'n/a' if np.isnan(std) else f'{std:.1f}'} | {paper_cell} "
+            f"| {iqm_cell(aucs, reps)} | {poi_cell} | {p_cell} | {improvement_cell} "
+            f"| {f'{np.mean(biases):.1f}' if biases else ''} | {f'{np.mean(walls):.0f}' if walls else ''} |"
+        )
+    lines += [
+        "",
+        f"n: runs (seeds) per row, {budget:,} steps each. IQM: interquartile mean over the runs; [a, b]: its {INTERVAL}, "
+        f"{reps} resamples. mean ± std: sample standard deviation (ddof 1). Normalized AUC: the area under the run's "
+        f"learning curve divided by its length in steps (its average evaluation return). P({REFERENCE} > variant): "
+        f"probability that a run of {REFERENCE} ends higher than a run of the variant, with its interval. Welch p: "
+        "two-sided Welch's t-test on the final returns. Initial-state bias: mean V(s0) minus the mean discounted "
+        "return at the last evaluation.",
+    ]
+    if len(references) > 1:
+        lines += ["", f"{REFERENCE} has several settings here, so no row is compared against it."]
+    others = [name for name in paper if name not in {PAPER_NAMES.get(group.variant) for group in groups}]
     if others:
         lines += ["", "Paper only: " + ", ".join(f"{name} {paper[name][0]:g} ± {paper[name][1]:g}" for name in others)]
-    return "\n".join(lines)
+    return lines
 
 
-def load_scalars(tensorboard_dirs: Sequence[str | Path]) -> dict[str, dict[str, list[tuple[np.ndarray, np.ndarray]]]]:
-    """
-    Training diagnostics from TensorBoard event files: ``{run group: {tag: [(steps, values) per run]}}``, the run
-    group being the event folder's name without its ``_<n>`` suffix (SB3 names it ``<ALGO>_<n>``), prefixed by
-    its parent folder when that is an env name (rl-zoo3's ``<tb>/<env_name>/<ALGO>_<n>``).
-    """
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+def section_notes(groups: Sequence[RunGroup], all_groups: Sequence[RunGroup]) -> list[str]:
+    """What the reader must know: variants split by settings, variants also run at other budgets, repeated seeds."""
+    notes = []
+    env_id, budget = groups[0].env_id, groups[0].n_timesteps
+    by_variant: dict[str, list[RunGroup]] = defaultdict(list)
+    for group in groups:
+        by_variant[group.variant].append(group)
+    for variant, siblings in by_variant.items():
+        if len(siblings) > 1:
+            keys = differing_keys([g.hyperparams for g in siblings])
+            notes.append(
+                f"- {variant}: {len(siblings)} sets of hyperparameters, differing in {', '.join(keys)}: listed apart, "
+                "never averaged together."
+            )
+        other_budgets = sorted({g.n_timesteps for g in all_groups if (g.variant, g.env_id) == (variant, env_id)} - {budget})
+        if other_budgets:
+            notes.append(
+                f"- {variant} also has runs of {', '.join(f'{b:,}' for b in other_budgets)} steps on this task, in their "
+                "own section: runs of different budgets are never averaged together."
+            )
+        for group in siblings:
+            seeds = [run.seed for run in group.runs]
+            repeated = sorted({seed for seed in seeds if seeds.count(seed) > 1})
+            if repeated:
+                notes.append(f"- {group.label}: seed(s) {repeated} appear more than once (each run counts).")
+    return notes
 
-    ids = _env_ids()
-    scalars: dict[str, dict[str, list[tuple[np.ndarray, np.ndarray]]]] = defaultdict(lambda: defaultdict(list))
-    for directory in tensorboard_dirs:
-        for events in sorted(Path(directory).rglob("events.out.tfevents.*")):
-            run_folder = events.parent
-            group = run_folder.name.rpartition("_")[0] or run_folder.name
-            if run_folder.parent.name in ids:
-                group = f"{ids[run_folder.parent.name]} {group}"
-            accumulator = EventAccumulator(str(events), size_guidance={"scalars": 0})
-            accumulator.Reload()
-            for tag in accumulator.Tags()["scalars"]:
-                if tag in DIAGNOSTICS or tag.startswith("train/kappa_"):
-                    points = accumulator.Scalars(tag)
-                    scalars[group][tag].append((np.array([p.step for p in points]), np.array([p.value for p in points])))
-    return scalars
+
+def variant_colors(variants: Sequence[str]) -> dict[str, str]:
+    """One colour per variant for every figure of a report, the known variants always in the same colour."""
+    ordered = sorted(set(variants), key=variant_rank)
+    return {variant: f"C{index % 10}" for index, variant in enumerate(ordered)}
 
 
-def plot_diagnostics(scalars: dict[str, dict[str, list[tuple[np.ndarray, np.ndarray]]]], path: str | Path) -> None:
-    """TD-target variance, inter-critic correlation and per-critic kappa over training, one line per run group."""
+def _pyplot() -> Any:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4))
-    for group, tags in scalars.items():
-        for ax, tag in zip(axes[:2], DIAGNOSTICS, strict=True):
-            for index, (steps, values) in enumerate(tags.get(tag, [])):
-                ax.plot(steps, values, color=f"C{list(scalars).index(group)}", label=group if index == 0 else None)
-        kappas = sorted(tag for tag in tags if tag.startswith("train/kappa_"))
-        for tag in kappas:
-            steps, values = tags[tag][0]
-            axes[2].plot(steps, values, label=f"{group} {tag.removeprefix('train/')}")
-    for ax, title in zip(axes, ("TD-target variance", "inter-critic correlation", "per-critic kappa"), strict=True):
-        ax.set_title(title)
-        ax.set_xlabel("environment steps")
-        if ax.lines:
-            ax.legend(fontsize="small")
+    return plt
+
+
+def _save(fig: Any, path: Path) -> None:
     fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    _pyplot().close(fig)
+
+
+def _draw_band(
+    ax: Any, series: Sequence[tuple[ArrayLike, ArrayLike]], reps: int, label: str, color: str, linestyle: str = "-"
+) -> str:
+    """IQM over runs with its bootstrap interval as a band; returns the grid's sentence (empty for shared steps)."""
+    grid, matrix, note = aligned(series)
+    point, low, high = stats.iqm_interval(matrix[:, None, :], reps)
+    ax.plot(grid, point, color=color, linestyle=linestyle, label=f"{label} (n={len(series)})")
+    ax.fill_between(grid, low, high, color=color, alpha=0.2)
+    return note
+
+
+def _linestyles(groups: Sequence[RunGroup]) -> dict[int, str]:
+    """Groups of one variant share its colour and differ by line style."""
+    styles = ("-", "--", ":", "-.")
+    seen: dict[str, int] = defaultdict(int)
+    result = {}
+    for group in groups:
+        result[id(group)] = styles[seen[group.variant] % len(styles)]
+        seen[group.variant] += 1
+    return result
+
+
+def plot_curves(
+    groups: Sequence[RunGroup], attribute: str, ylabel: str, title: str, path: Path, colors: dict[str, str], reps: int,
+    zero_line: bool = False,
+) -> list[str]:  # fmt: skip
+    """
+    A per-run list (``returns`` or ``initial_state_bias``) against steps: IQM over each group's runs and its interval.
+
+    :return: sentences on interpolated grids
+    """
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    styles, notes = _linestyles(groups), []
+    for group in groups:
+        series = [
+            (run.timesteps[: len(getattr(run, attribute))], getattr(run, attribute))
+            for run in group.runs
+            if getattr(run, attribute)
+        ]
+        if series:
+            note = _draw_band(ax, series, reps, group.label, colors[group.variant], styles[id(group)])
+            if note:
+                notes.append(f"{group.label}: {note}")
+    if zero_line:
+        ax.axhline(0.0, color="black", linewidth=0.8)
+    ax.set_xlabel("environment steps")
+    ax.set_ylabel(ylabel)
+    ax.set_title(f"{title}\nIQM over runs, band: 95% stratified-bootstrap CI", fontsize=10)
+    ax.legend(fontsize="small")
+    _save(fig, path)
+    return notes
+
+
+def load_diagnostics(run: RunResult) -> dict[str, np.ndarray] | None:
+    """A run's critic diagnostics (``critic_diagnostics.npz``, SAC family), or None."""
+    path = Path(run.folder) / DIAGNOSTICS_FILE
+    if not path.exists():
+        return None
+    with np.load(path) as records:
+        return {key: records[key] for key in records.files}
+
+
+#: The diagnostics figure's panels: record key, title, y label
+DIAGNOSTIC_PANELS = (
+    ("td_target_var", "TD-target variance (Fig. 4c)", "Var_batch(y) (return units²)"),
+    ("critic_corr", "critics' value correlation", "mean off-diagonal Pearson r of Q_i"),
+    ("td_error_corr", "critics' TD-error correlation", "mean off-diagonal Pearson r of δ_i"),
+    ("critic_lr", "critic learning rate (adaptive: per critic)", "learning rate (mean over critics; dotted: min, max)"),
+)
+
+
+def plot_diagnostics(groups: Sequence[RunGroup], path: Path, colors: dict[str, str], reps: int) -> bool:
+    """
+    One panel per quantity of :data:`DIAGNOSTIC_PANELS`, IQM over runs and interval per group; per-critic learning
+    rates summarized by their mean (line and band) and their smallest and largest (dotted). Returns whether any
+    group had diagnostics.
+    """
+    records = {id(group): [d for d in map(load_diagnostics, group.runs) if d is not None] for group in groups}
+    if not any(records.values()):
+        return False
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, len(DIAGNOSTIC_PANELS), figsize=(5 * len(DIAGNOSTIC_PANELS), 4.2))
+    styles = _linestyles(groups)
+    for group in groups:
+        runs = records[id(group)]
+        if not runs:
+            continue
+        color = colors[group.variant]
+        for ax, (key, _, _) in zip(axes, DIAGNOSTIC_PANELS, strict=True):
+            if key not in runs[0]:
+                continue
+            values = [r[key] if r[key].ndim == 1 else r[key].mean(axis=1) for r in runs]
+            _draw_band(
+                ax,
+                [(r["timesteps"], v) for r, v in zip(runs, values, strict=True)],
+                reps,
+                group.label,
+                color,
+                styles[id(group)],
+            )
+            if runs[0][key].ndim == 2:
+                for reduce in (np.min, np.max):
+                    grid, matrix, _ = aligned([(r["timesteps"], reduce(r[key], axis=1)) for r in runs])
+                    ax.plot(grid, stats.iqm(matrix[:, None, :]), color=color, linestyle=":", linewidth=0.9)
+    for ax, (key, title, ylabel) in zip(axes, DIAGNOSTIC_PANELS, strict=True):
+        ax.set_title(title, fontsize=10)
+        ax.set_xlabel("environment steps")
+        ax.set_ylabel(ylabel)
+        if key == "td_target_var":
+            ax.set_yscale("log")
+        if ax.lines:
+            ax.legend(fontsize="x-small")
+    fig.suptitle(
+        "Critic diagnostics on 1024 replayed transitions at each evaluation; IQM over runs, band: 95% bootstrap CI",
+        fontsize=10,
+    )
+    _save(fig, path)
+    return True
+
+
+def plot_auc_bars(groups: Sequence[RunGroup], path: Path, colors: dict[str, str], reps: int) -> None:
+    """Normalized AUC per group (paper Fig. 4b): IQM over runs as a bar, its interval as an error bar, runs as dots."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(1.6 * len(groups) + 2, 4.2))
+    for index, group in enumerate(groups):
+        aucs = group.aucs
+        point, low, high = (value[0] for value in stats.iqm_interval(aucs[:, None], reps))
+        ax.bar(index, point, color=colors[group.variant], alpha=0.8)
+        ax.errorbar(index, point, yerr=[[point - low], [high - point]], color="black", capsize=5)
+        ax.scatter(np.full(len(aucs), index), aucs, color="black", s=10, zorder=3)
+    ax.set_xticks(range(len(groups)), [f"{g.label}\n(n={len(g.runs)})" for g in groups], fontsize=8)
+    ax.set_ylabel("normalized AUC (average evaluation return)")
+    ax.set_title("Normalized AUC (Fig. 4b): IQM over runs, error bar: 95% stratified-bootstrap CI, dots: runs", fontsize=9)
+    _save(fig, path)
+
+
+def plot_correlation_matrices(groups: Sequence[RunGroup], path: Path, step: int | None) -> str | None:
+    """
+    The K x K correlation matrices of the critics' TD errors and values (paper Fig. 5) of each ensemble group
+    (K >= 3) at the evaluation nearest ``step`` (None: the last), averaged over its runs.
+
+    :return: a sentence saying which step was drawn, or None when no group has matrices
+    """
+    panels = []
+    for group in groups:
+        runs = [d for d in map(load_diagnostics, group.runs) if d is not None and d["td_error_corr_matrix"].shape[-1] >= 3]
+        if not runs:
+            continue
+        picks = [int(np.argmin(np.abs(r["timesteps"] - (r["timesteps"][-1] if step is None else step)))) for r in runs]
+        steps = sorted({int(r["timesteps"][i]) for r, i in zip(runs, picks, strict=True)})
+        matrices = {
+            key: np.mean([r[key][i] for r, i in zip(runs, picks, strict=True)], axis=0)
+            for key in ("td_error_corr_matrix", "critic_corr_matrix")
+        }
+        panels.append((group, steps, len(runs), matrices))
+    if not panels:
+        return None
+    plt = _pyplot()
+    fig, axes = plt.subplots(2, len(panels), figsize=(3.4 * len(panels) + 1.5, 7), squeeze=False, layout="constrained")
+    rows = (("td_error_corr_matrix", "TD errors δ_i"), ("critic_corr_matrix", "values Q_i"))
+    for row, (key, name) in enumerate(rows):
+        # One colour scale per row, from its smallest off-diagonal entry to 1, so that differences show
+        off_diagonal = [m[key][~np.eye(len(m[key]), dtype=bool)] for _, _, _, m in panels]
+        low = min(float(np.floor(min(values.min() for values in off_diagonal) * 20) / 20), 0.95)
+        image = None
+        for column, (group, steps, n, matrices) in enumerate(panels):
+            ax, matrix = axes[row][column], matrices[key]
+            image = ax.imshow(matrix, vmin=low, vmax=1.0, cmap="viridis")
+            for (i, j), value in np.ndenumerate(matrix):
+                shade = "black" if value > low + 0.6 * (1.0 - low) else "white"
+                ax.text(j, i, f"{value:.2f}", ha="center", va="center", fontsize=7, color=shade)
+            labels = [f"Q{i}" for i in range(len(matrix))]
+            ax.set_xticks(range(len(matrix)), labels, fontsize=7)
+            ax.set_yticks(range(len(matrix)), labels, fontsize=7)
+            ax.set_title(f"{group.label}: {name}\nat {'/'.join(f'{s:,}' for s in steps)} steps, mean of {n} runs", fontsize=8)
+        fig.colorbar(image, ax=axes[row], shrink=0.8, label="Pearson r over 1024 replayed transitions")
+    fig.suptitle("Inter-critic correlation matrices (Fig. 5)", fontsize=10)
     fig.savefig(path, dpi=110)
     plt.close(fig)
+    chosen = "the last evaluation" if step is None else f"the evaluation nearest {step:,} steps"
+    return f"Correlation matrices at {chosen}, averaged over each row's runs."
 
 
-def split_by_task(
-    scalars: dict[str, dict[str, list[tuple[np.ndarray, np.ndarray]]]],
-) -> dict[str | None, dict[str, dict[str, list[tuple[np.ndarray, np.ndarray]]]]]:
-    """The run groups of :func:`load_scalars` by task (``"<env id> <group>"``), None for groups without a task."""
-    ids = set(_env_ids().values())
-    tasks: dict[str | None, dict[str, dict[str, list[tuple[np.ndarray, np.ndarray]]]]] = defaultdict(dict)
-    for group, tags in scalars.items():
-        task, _, name = group.partition(" ")
-        if name and task in ids:
-            tasks[task][name] = tags
-        else:
-            tasks[None][group] = tags
-    return tasks
-
-
-def write_report(roots: Sequence[str | Path], out: str | Path, tensorboard_dirs: Sequence[str | Path] = ()) -> Path:
+def aggregate_section(sections: Sequence[list[RunGroup]], folder: Path, colors: dict[str, str], reps: int) -> list[str]:
     """
-    Write the report to the folder ``out``: ``report.md``, per task a learning-curve figure, an initial-state bias
-    figure (runs that recorded it) and a diagnostics figure (TensorBoard logs under ``<tb>/<env_name>/``), and
-    ``diagnostics.png`` for TensorBoard runs of no known task.
+    Scores aggregated over task sections: each final return min-max normalized by the lowest and highest final
+    return of any run in its section, then per variant (one settings group per section, the same number of runs
+    in each) the IQM over runs and tasks with its interval, and performance profiles.
+    """
+    scores: dict[str, list[np.ndarray]] = defaultdict(list)
+    counts: dict[str, set[int]] = defaultdict(set)
+    for groups in sections:
+        finals = np.concatenate([group.finals for group in groups])
+        low, high = float(finals.min()), float(finals.max())
+        variants = [group.variant for group in groups]
+        for group in groups:
+            if variants.count(group.variant) == 1:
+                scores[group.variant].append(stats.min_max_normalized(group.finals, low, high))
+                counts[group.variant].add(len(group.runs))
+    kept = {v: np.stack(s, axis=1) for v, s in scores.items() if len(s) == len(sections) and len(counts[v]) == 1}
+    left_out = sorted(set(scores) - set(kept), key=variant_rank)
+    lines = ["## Across tasks", ""]
+    tasks = ", ".join(f"{g[0].env_id} ({g[0].n_timesteps:,} steps)" for g in sections)
+    lines += [
+        f"Final returns min-max normalized per section (0: the lowest final return of any run in the section, 1: the "
+        f"highest), over {len(sections)} sections: {tasks}.",
+        "",
+    ]
+    if not kept:
+        return [
+            *lines,
+            "No variant has one settings group with the same number of runs in every section: nothing aggregated.",
+            "",
+        ]
+    lines += ["| variant | runs x tasks | normalized score IQM [95% CI] |", "|---|---|---|"]
+    for variant in sorted(kept, key=variant_rank):
+        point, low, high = (v[0] for v in stats.iqm_interval(kept[variant], reps))
+        lines.append(
+            f"| {variant} | {kept[variant].shape[0]} x {kept[variant].shape[1]} | {point:.2f} [{low:.2f}, {high:.2f}] |"
+        )
+    lines += ["", f"IQM over runs and tasks; [a, b]: {INTERVAL}, runs resampled within each task, {reps} resamples."]
+    if left_out:
+        lines += [f"Left out (not in every section with one settings group and equal run counts): {', '.join(left_out)}."]
+    thresholds = np.linspace(0.0, 1.0, 41)
+    profiles, bands = stats.performance_profile(kept, thresholds, reps)
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for variant in sorted(kept, key=variant_rank):
+        ax.plot(thresholds, profiles[variant], color=colors[variant], label=f"{variant} (n={kept[variant].size})")
+        ax.fill_between(thresholds, bands[variant][0], bands[variant][1], color=colors[variant], alpha=0.2)
+    ax.set_xlabel("normalized score τ")
+    ax.set_ylabel("fraction of runs with score > τ")
+    ax.set_title("Performance profiles, band: 95% stratified-bootstrap CI", fontsize=10)
+    ax.legend(fontsize="small")
+    _save(fig, folder / "performance_profiles.png")
+    return [*lines, "", "![performance profiles](performance_profiles.png)", ""]
 
+
+def write_report(
+    runs: Sequence[RunResult],
+    out: str | Path,
+    skipped: Sequence[Skipped] = (),
+    reps: int = stats.REPS,
+    matrix_step: int | None = None,
+    sources: Sequence[str] = (),
+) -> Path:
+    """
+    Write ``report.md`` and its figures into the folder ``out`` (see the module's docstring).
+
+    :param runs: finished runs (:func:`load_runs`, or what ``compare``/``bench`` ran)
+    :param skipped: folders left out, listed at the end with their reasons
+    :param reps: bootstrap resamples of every interval
+    :param matrix_step: the step whose correlation matrices are drawn (None: each run's last evaluation)
+    :param sources: where the runs were read from, for the report's first line
     :return: the path of ``report.md``
     """
-    runs = load_runs(roots)
     if not runs:
-        raise ValueError(
-            f"No run folders (<root>/<algo>/<env>_<id>/evaluations.npz) under {list(map(str, roots))}: "
-            "train with evaluations (sb3-sera train --eval-freq N, compare and bench always evaluate)"
-        )
+        raise ValueError("no finished runs to report")
     folder = Path(out)
     folder.mkdir(parents=True, exist_ok=True)
-    by_task: dict[str, list[RunResult]] = defaultdict(list)
-    for run in runs:
-        by_task[run.env_id].append(run)
-    diagnostics = split_by_task(load_scalars(tensorboard_dirs)) if tensorboard_dirs else {}
-    sections = ["# Results", "", f"Runs read from: {', '.join(map(str, roots))}.", ""]
-    for env_id, task_runs in by_task.items():
-        figure = folder / f"{env_name(env_id)}_curves.png"
-        plot_learning_curves(task_runs, figure)
-        sections += [task_table(env_id, task_runs), "", f"![{env_id}]({figure.name})", ""]
-        if any(run.initial_state_bias for run in task_runs):
-            bias_figure = folder / f"{env_name(env_id)}_bias.png"
-            plot_initial_state_bias(task_runs, bias_figure)
-            sections += [f"![{env_id} initial-state bias]({bias_figure.name})", ""]
-        if env_id in diagnostics:
-            diagnostics_figure = folder / f"{env_name(env_id)}_diagnostics.png"
-            plot_diagnostics(diagnostics[env_id], diagnostics_figure)
-            sections += [f"![{env_id} training diagnostics]({diagnostics_figure.name})", ""]
-    if None in diagnostics:
-        plot_diagnostics(diagnostics[None], folder / "diagnostics.png")
-        sections += ["## Training diagnostics", "", "![diagnostics](diagnostics.png)", ""]
+    all_groups = group_runs(runs)
+    colors = variant_colors([group.variant for group in all_groups])
+    sections_by_key: dict[tuple[str, int], list[RunGroup]] = defaultdict(list)
+    for group in all_groups:
+        sections_by_key[(group.env_id, group.n_timesteps)].append(group)
+    lines = ["# Results", ""]
+    if sources:
+        lines += [f"Runs read from: {', '.join(sources)}.", ""]
+    for (env_id, budget), groups in sections_by_key.items():
+        stem = f"{env_name(env_id)}_{budget}"
+        lines += [f"## {env_id}, {budget:,} steps", "", *section_table(groups, reps), ""]
+        notes = section_notes(groups, all_groups)
+        if notes:
+            lines += ["Notes:", *notes, ""]
+        grid_notes = plot_curves(
+            groups, "returns", "evaluation return", f"{env_id}, {budget:,} steps", folder / f"{stem}_curves.png", colors, reps
+        )
+        lines += [f"![{env_id} learning curves]({stem}_curves.png)", ""]
+        lines += [f"- {note}" for note in grid_notes] + ([""] if grid_notes else [])
+        if any(run.initial_state_bias for group in groups for run in group.runs):
+            plot_curves(
+                groups, "initial_state_bias", "V(s0) - discounted return", f"Initial-state bias (Fig. 4a), {env_id}",
+                folder / f"{stem}_bias.png", colors, reps, zero_line=True,
+            )  # fmt: skip
+            lines += [f"![{env_id} initial-state bias]({stem}_bias.png)", ""]
+        if len(groups) > 1:
+            plot_auc_bars(groups, folder / f"{stem}_auc.png", colors, reps)
+            lines += [f"![{env_id} normalized AUC]({stem}_auc.png)", ""]
+        if plot_diagnostics(groups, folder / f"{stem}_diagnostics.png", colors, reps):
+            lines += [f"![{env_id} critic diagnostics]({stem}_diagnostics.png)", ""]
+        matrices = plot_correlation_matrices(groups, folder / f"{stem}_correlations.png", matrix_step)
+        if matrices is not None:
+            lines += [f"![{env_id} critic correlation matrices]({stem}_correlations.png)", "", matrices, ""]
+    if len(sections_by_key) > 1:
+        lines += aggregate_section(list(sections_by_key.values()), folder, colors, reps)
+    if skipped:
+        lines += ["## Left out", "", *(f"- {s.folder}: {s.reason}" for s in skipped), ""]
     report = folder / "report.md"
-    report.write_text("\n".join(sections))
+    report.write_text("\n".join(lines))
     return report
+
+
+def report_roots(
+    roots: Sequence[str | Path],
+    out: str | Path,
+    overwrite: bool = False,
+    reps: int = stats.REPS,
+    matrix_step: int | None = None,
+) -> Path:
+    """
+    :func:`write_report` for every run under ``roots`` (see :func:`load_runs`); refuses to overwrite an earlier
+    report unless ``overwrite``.
+    """
+    if (Path(out) / "report.md").exists() and not overwrite:
+        raise ValueError(f"{out} already holds a report.md: choose another --out, or pass --overwrite to replace it")
+    runs, skipped = load_runs(roots)
+    if not runs:
+        reasons = "".join(f"; {s.folder}: {s.reason}" for s in skipped)
+        raise ValueError(
+            f"no finished runs (<root>/<variant>/<env_name>_<id>/ with its <env_name>/args.yml record and evaluations.npz) "
+            f"under {[str(root) for root in roots]}{reasons}"
+        )
+    return write_report(runs, out, skipped, reps, matrix_step, sources=[str(root) for root in roots])
+
+
+def next_report_folder(parent: str | Path, name: str) -> Path:
+    """``<parent>/<name>_<n>`` with the next free ``n`` (from 1), so that a report never replaces another."""
+    parent = Path(parent)
+    taken = [int(p.name.rpartition("_")[2]) for p in parent.glob(f"{name}_*") if p.name.rpartition("_")[2].isdigit()]
+    return parent / f"{name}_{max(taken, default=0) + 1}"

@@ -166,16 +166,44 @@ def ensemble_disagreement(q_values: th.Tensor) -> th.Tensor:
     return (q_values - q_med.unsqueeze(1)).abs().mean(dim=1)
 
 
+def correlation_matrix(values: th.Tensor) -> th.Tensor:
+    """
+    Pearson correlation of the columns of ``values`` over its rows (the batch), shape ``(K, K)``.
+
+    A column that is constant over the batch has no defined correlation: its entries count as zero.
+
+    :param values: one column per critic, shape ``(batch_size, n_critics)``
+    """
+    return th.nan_to_num(th.corrcoef(values.T), nan=0.0)
+
+
+def mean_off_diagonal(matrix: th.Tensor) -> th.Tensor:
+    """Mean of the off-diagonal entries of a square ``(K, K)`` matrix, ``K >= 2``."""
+    n = matrix.shape[0]
+    return (matrix.sum() - matrix.diagonal().sum()) / (n * (n - 1))
+
+
 def critic_correlation(q_values: th.Tensor) -> th.Tensor:
     """
-    Mean off-diagonal Pearson correlation of the critics over the batch (paper appendix A.4).
+    Mean off-diagonal Pearson correlation of the critics' values over the batch (paper appendix A.4).
 
-    A critic that is constant over the batch has no defined correlation; it counts as zero.
+    Values across states are dominated by each state's value, so this stays near 1 for any trained ensemble; see
+    :func:`td_error_correlation` for the quantity the ensemble's variance reduction depends on.
 
     :param q_values: critic values, shape ``(batch_size, n_critics)``
     :return: a scalar tensor in ``[-1, 1]``
     """
-    n_critics = q_values.shape[1]
-    corr = th.nan_to_num(th.corrcoef(q_values.T), nan=0.0)
-    off_diagonal = corr.sum() - corr.diagonal().sum()
-    return off_diagonal / (n_critics * (n_critics - 1))
+    return mean_off_diagonal(correlation_matrix(q_values))
+
+
+def td_error_correlation(td_errors: th.Tensor) -> th.Tensor:
+    """
+    Mean off-diagonal Pearson correlation of the critics' TD errors ``delta_i = y - Q_i(s, a)`` over the batch.
+
+    The variance of an average of K errors is ``sigma^2 (1 + (K - 1) rho) / K`` for a mean correlation ``rho``:
+    this is the correlation that decides how much an ensemble reduces the error's variance.
+
+    :param td_errors: TD errors, shape ``(batch_size, n_critics)``
+    :return: a scalar tensor in ``[-1, 1]``
+    """
+    return mean_off_diagonal(correlation_matrix(td_errors))

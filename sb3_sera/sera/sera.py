@@ -26,6 +26,7 @@ from sb3_sera.sera.aggregation import (
     ensemble_disagreement,
     median_anchor,
     selected_critic,
+    td_error_correlation,
 )
 from sb3_sera.sera.policies import CnnPolicy, EnsembleCritic, MlpPolicy, MultiInputPolicy, SERAPolicy
 from sb3_sera.sera.step_size import StepSizeUpdate, VarianceAdaptiveStepSize, batch_variance
@@ -524,10 +525,19 @@ class SERASAC(SAC):
                     next_q_aggregate.mean(),
                     median_anchor(next_q_values)[0].mean(),
                     critic_correlation(current_q_values),
+                    td_error_correlation(target_q_values - current_q_values),
                 ]
             ).tolist()
             per_critic = th.stack([update.kappa, update.estimation_var, update.measurement_var]).tolist()
-        names = ("td_target_var", "critic_disagreement", "target_entropy_eff", "q_sera_mean", "q_median_mean", "critic_corr")
+        names = (
+            "td_target_var",
+            "critic_disagreement",
+            "target_entropy_eff",
+            "q_sera_mean",
+            "q_median_mean",
+            "critic_corr",
+            "td_error_corr",
+        )
         for name, value in zip(names, scalars, strict=True):
             self.logger.record(f"train/{name}", value)
         for prefix, values in zip(("kappa", "P", "R"), per_critic, strict=True):

@@ -1,0 +1,533 @@
+"""
+The run engine behind ``compare``, ``bench`` and the notebooks: one way to describe a training run, to resolve its
+hyperparameters and to record it, in rl-zoo3's layout so that the zoo's own runs read the same way.
+
+Hyperparameters come from where ``sb3-sera train`` takes them: the task's entry in ``hyperparams/<algo>.yml`` (this
+package's file, else rl-zoo3's own), then the variant's or the command line's overrides. A run lives in
+``<out>/<variant>/<env_name>_<id>/`` (ids from 1, as the zoo numbers them) and holds, as the zoo writes them,
+``<env_name>/config.yml`` (the resolved hyperparameters) and ``<env_name>/args.yml`` (algorithm, variant, env id,
+seed, budget, evaluation settings, threads, device, where the hyperparameters came from and the package versions),
+then ``evaluations.npz`` and the callback's records, ``0.monitor.csv``, TensorBoard events under
+``<variant>_seed<seed>_1/``, the final model ``<env_name>.zip`` and, written last, ``result.json`` (wall time, and
+the torch threads and device the run had). A run whose
+records match a finished run's is not run again; an interrupted one runs again in its own folder.
+"""
+
+import json
+import math
+import os
+import shutil
+import time
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, field
+from importlib import metadata
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+import yaml
+from gymnasium import spaces
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.noise import NormalActionNoise, OrnsteinUhlenbeckActionNoise
+from stable_baselines3.common.vec_env import VecEnv
+from tqdm import tqdm
+
+from sb3_sera.common.callbacks import BIAS_FILE, InitialStateBiasCallback, initial_state_bias
+from sb3_sera.ctde.env import STATE_KEY
+
+#: rl-zoo3 keys that describe the run rather than the algorithm
+RUN_KEYS = ("n_timesteps", "policy", "n_envs", "env_kwargs", "noise_type", "noise_std")
+#: rl-zoo3 keys this engine does not apply: such entries are for ``sb3-sera train``
+ZOO_ONLY_KEYS = ("normalize", "normalize_kwargs", "env_wrapper", "vec_env_wrapper", "frame_stack", "callback")
+#: Keys a run's settings never take (the engine sets them)
+ENGINE_KEYS = ("policy", "env", "seed", "verbose", "device", "tensorboard_log", "_init_setup_model")
+#: Packages whose versions each run records
+VERSIONED = ("sb3-sera", "stable-baselines3", "sb3-contrib", "rl-zoo3", "torch", "gymnasium", "gymnasium-robotics")
+#: File that marks a run as finished (written last)
+RESULT_FILE = "result.json"
+
+
+def algorithm_classes() -> dict[str, type[BaseAlgorithm]]:
+    """rl-zoo3's algorithms by lower-case name, with this package's added."""
+    from rl_zoo3.utils import ALGOS
+
+    from sb3_sera.experiments.zoo import ZOO_ALGOS
+
+    return {**ALGOS, **ZOO_ALGOS}
+
+
+def env_name(env_id: str) -> str:
+    """``env_id`` as rl-zoo3 names folders and files: slashes become dashes (``sb3_sera-HalfCheetah-6x1-v0``)."""
+    return env_id.replace("/", "-")
+
+
+def hyperparams_file(algo: str) -> Path:
+    """The YAML file ``sb3-sera train --algo <algo>`` reads: this package's, else rl-zoo3's own."""
+    from sb3_sera.experiments.zoo import HYPERPARAMS_DIR
+
+    ours = Path(HYPERPARAMS_DIR) / f"{algo}.yml"
+    if ours.exists():
+        return ours
+    import rl_zoo3
+
+    return Path(rl_zoo3.__file__).parent / "hyperparams" / f"{algo}.yml"
+
+
+def default_hyperparams(algo: str, env_id: str) -> tuple[dict[str, Any], str]:
+    """
+    The task's entry in ``hyperparams_file(algo)`` (its ``default`` entry when the task has none), as rl-zoo3 reads it.
+
+    :return: the entry, and where it came from (``"<file>:<key>"``, or a sentence saying the algorithm's own
+        defaults apply because no file has an entry)
+    """
+    path = hyperparams_file(algo)
+    entries = yaml.safe_load(path.read_text()) if path.exists() else {}
+    for key in (env_id, "default"):
+        if key in (entries or {}):
+            return dict(entries[key]), f"{path}:{key}"
+    return {}, f"no entry for {env_id} in {path}: the algorithm's defaults"
+
+
+def accepted_hyperparams(algo: str) -> set[str]:
+    """What a run of ``algo`` may set: the algorithm's constructor arguments and rl-zoo3's run keys."""
+    import inspect
+
+    signature = inspect.signature(algorithm_classes()[algo])
+    return (set(signature.parameters) - set(ENGINE_KEYS)) | set(RUN_KEYS) - {"n_timesteps"}
+
+
+def check_hyperparams(algo: str, hyperparams: dict[str, Any], where: str) -> None:
+    """Raise ``ValueError`` naming the keys ``algo`` does not take (``where`` says whose settings they are)."""
+    zoo_only = sorted(set(hyperparams) & set(ZOO_ONLY_KEYS))
+    if zoo_only:
+        raise ValueError(
+            f"{where}: {zoo_only} are applied by rl-zoo3's training only: run this task with `sb3-sera train`, "
+            "or give an entry without them"
+        )
+    unknown = sorted(set(hyperparams) - accepted_hyperparams(algo) - {"n_timesteps"})
+    if unknown:
+        raise ValueError(
+            f"{where}: unknown hyperparameter(s) {unknown} for {algo}; allowed: {sorted(accepted_hyperparams(algo))}"
+        )
+
+
+@dataclass
+class RunSpec:
+    """One training run: an algorithm under a variant's name, on one task and seed, with resolved hyperparameters."""
+
+    variant: str
+    algo: str
+    env_id: str
+    seed: int
+    n_timesteps: int
+    #: Resolved hyperparameters as written in a zoo YAML entry (``policy`` included, ``n_timesteps`` left out)
+    hyperparams: dict[str, Any] = field(default_factory=dict)
+    eval_freq: int = 1000
+    n_eval_episodes: int = 5
+    #: torch threads of the run's process (None: torch's default)
+    num_threads: int | None = 1
+    device: str = "auto"
+    #: Where the hyperparameters came from
+    hyperparams_source: str = ""
+
+    def args(self) -> dict[str, Any]:
+        """The run's ``args.yml``: rl-zoo3's names where the zoo has one."""
+        return {
+            "algo": self.algo,
+            "variant": self.variant,
+            "env": self.env_id,
+            "seed": self.seed,
+            "n_timesteps": self.n_timesteps,
+            "eval_freq": self.eval_freq,
+            "eval_episodes": self.n_eval_episodes,
+            "num_threads": self.num_threads,
+            "device": self.device,
+            "hyperparams_source": self.hyperparams_source,
+            "versions": package_versions(),
+        }
+
+    def config(self) -> dict[str, Any]:
+        """The run's ``config.yml``: the hyperparameters as a zoo YAML entry, with the budget."""
+        return dict(sorted({**self.hyperparams, "n_timesteps": self.n_timesteps}.items()))
+
+    def identity(self) -> dict[str, Any]:
+        """What makes two runs the same run (threads, device and versions do not)."""
+        return {
+            "algo": self.algo,
+            "variant": self.variant,
+            "env": self.env_id,
+            "seed": self.seed,
+            "n_timesteps": self.n_timesteps,
+            "eval_freq": self.eval_freq,
+            "eval_episodes": self.n_eval_episodes,
+            "config": _plain(self.config()),
+        }
+
+
+def make_spec(
+    variant: str,
+    algo: str,
+    env_id: str,
+    seed: int,
+    n_timesteps: int,
+    overrides: dict[str, Any] | None = None,
+    eval_freq: int = 1000,
+    n_eval_episodes: int = 5,
+    num_threads: int | None = 1,
+    device: str = "auto",
+) -> RunSpec:
+    """
+    A run with the task's hyperparameters from ``hyperparams/<algo>.yml`` (see :func:`default_hyperparams`), then
+    ``overrides``; ``ValueError`` for a key ``algo`` does not take.
+    """
+    defaults, source = default_hyperparams(algo, env_id)
+    hyperparams = {**defaults, **(overrides or {})}
+    hyperparams.pop("n_timesteps", None)
+    check_hyperparams(algo, hyperparams, f"{variant} on {env_id}")
+    return RunSpec(
+        variant,
+        algo,
+        env_id,
+        int(seed),
+        int(n_timesteps),
+        hyperparams,
+        int(eval_freq),
+        int(n_eval_episodes),
+        num_threads,
+        device,
+        source,
+    )
+
+
+def package_versions() -> dict[str, str]:
+    """Python's and the main packages' versions."""
+    import platform
+
+    versions = {"python": platform.python_version()}
+    for package in VERSIONED:
+        try:
+            versions[package] = metadata.version(package)
+        except metadata.PackageNotFoundError:
+            continue
+    return versions
+
+
+class _RecordLoader(yaml.SafeLoader):
+    """Safe YAML loading that also reads rl-zoo3's records, which it writes as ``OrderedDict`` objects."""
+
+
+def _ordered_dict(loader: yaml.SafeLoader, node: yaml.Node) -> dict[str, Any]:
+    assert isinstance(node, yaml.SequenceNode)
+    (pairs,) = loader.construct_sequence(node, deep=True)
+    return {key: value for key, value in pairs}
+
+
+_RecordLoader.add_constructor("tag:yaml.org,2002:python/object/apply:collections.OrderedDict", _ordered_dict)
+
+
+def read_record(path: Path) -> dict[str, Any]:
+    """One of a run's YAML records (``config.yml``, ``args.yml``), ours or rl-zoo3's."""
+    return yaml.load(path.read_text(), Loader=_RecordLoader) or {}
+
+
+def _plain(value: Any) -> Any:
+    """``value`` as YAML round-trips it (tuples as lists), so a record compares equal to the spec it came from."""
+    return yaml.safe_load(yaml.safe_dump(value))
+
+
+def records_dir(folder: Path, env_id: str) -> Path:
+    """Where a run keeps ``config.yml`` and ``args.yml`` (rl-zoo3: ``<run folder>/<env_name>/``)."""
+    return folder / env_name(env_id)
+
+
+def run_ids(variant_dir: Path, env_id: str) -> dict[int, Path]:
+    """The run folders ``<env_name>_<id>`` of one task under a variant's folder, by id."""
+    prefix = f"{env_name(env_id)}_"
+    folders = {}
+    for folder in variant_dir.glob(f"{prefix}*"):
+        suffix = folder.name[len(prefix) :]
+        if folder.is_dir() and suffix.isdigit():
+            folders[int(suffix)] = folder
+    return folders
+
+
+def assign_folders(specs: Sequence[RunSpec], out_dir: str | Path) -> list[Path]:
+    """
+    A folder per spec: the folder of an earlier run with the same records (finished: read back; interrupted: run
+    again there), else a new ``<env_name>_<id>`` with the next free id, its records written at once.
+    """
+    folders: list[Path] = []
+    taken: set[Path] = set()
+    for spec in specs:
+        variant_dir = Path(out_dir) / spec.variant
+        existing = run_ids(variant_dir, spec.env_id)
+        match = None
+        for _, folder in sorted(existing.items()):
+            args_file = records_dir(folder, spec.env_id) / "args.yml"
+            if folder not in taken and args_file.exists() and _same_run(folder, spec):
+                match = folder
+                break
+        if match is None:
+            next_id = max([*existing, *(_id_of(f, spec.env_id) for f in taken if f.parent == variant_dir)], default=0) + 1
+            match = variant_dir / f"{env_name(spec.env_id)}_{next_id}"
+            records = records_dir(match, spec.env_id)
+            records.mkdir(parents=True)
+            (records / "config.yml").write_text(yaml.safe_dump(_plain(spec.config()), sort_keys=True))
+            (records / "args.yml").write_text(yaml.safe_dump(_plain(spec.args()), sort_keys=True))
+        taken.add(match)
+        folders.append(match)
+    return folders
+
+
+def _id_of(folder: Path, env_id: str) -> int:
+    return int(folder.name[len(env_name(env_id)) + 1 :])
+
+
+def _same_run(folder: Path, spec: RunSpec) -> bool:
+    records = records_dir(folder, spec.env_id)
+    args, config = read_record(records / "args.yml"), read_record(records / "config.yml")
+    recorded = {key: args.get(key) for key in ("algo", "variant", "env", "seed", "n_timesteps", "eval_freq", "eval_episodes")}
+    return {**recorded, "config": config} == spec.identity()
+
+
+@dataclass
+class RunResult:
+    """What one finished run measured, with its records."""
+
+    variant: str
+    algo: str
+    env_id: str
+    seed: int
+    n_timesteps: int
+    wall_time_s: float
+    #: Mean return of the last evaluation
+    final_return: float
+    timesteps: list[int] = field(default_factory=list)
+    #: Mean evaluation return at each of ``timesteps``
+    returns: list[float] = field(default_factory=list)
+    #: Initial-state value bias at each of ``timesteps``: mean ``V(s0)`` minus mean discounted return over the
+    #: evaluation's episodes (empty for runs evaluated without :class:`InitialStateBiasCallback`)
+    initial_state_bias: list[float] = field(default_factory=list)
+    #: The resolved hyperparameters (``config.yml`` without the budget)
+    hyperparams: dict[str, Any] = field(default_factory=dict)
+    #: The run folder
+    folder: str = ""
+
+
+def make_model(spec: RunSpec, env: VecEnv, tensorboard_log: str | None = None) -> BaseAlgorithm:
+    """The spec's model on ``env``, its hyperparameters turned into objects as rl-zoo3 does."""
+    from rl_zoo3.exp_manager import ExperimentManager
+    from torch import nn
+
+    kwargs = {key: value for key, value in spec.hyperparams.items() if key not in RUN_KEYS}
+    # Schedules given as strings ("lin_3e-4") become rl-zoo3's schedule objects
+    kwargs.update(ExperimentManager._preprocess_schedules({k: v for k, v in kwargs.items() if isinstance(v, str)}))
+    if isinstance(kwargs.get("policy_kwargs"), str):
+        kwargs["policy_kwargs"] = eval(kwargs["policy_kwargs"], {"nn": nn, "th": th, "dict": dict})
+    if isinstance(kwargs.get("train_freq"), list):
+        kwargs["train_freq"] = tuple(kwargs["train_freq"])
+    noise_type = spec.hyperparams.get("noise_type")
+    if noise_type is not None:
+        assert isinstance(env.action_space, spaces.Box)
+        n_actions = env.action_space.shape[0]
+        noise_std = float(spec.hyperparams.get("noise_std", 0.1))
+        noises = {"normal": NormalActionNoise, "ornstein-uhlenbeck": OrnsteinUhlenbeckActionNoise}
+        if noise_type not in noises:
+            raise ValueError(f"noise_type={noise_type!r} is invalid: expected one of {sorted(noises)}")
+        kwargs["action_noise"] = noises[noise_type](mean=np.zeros(n_actions), sigma=noise_std * np.ones(n_actions))
+    policy = spec.hyperparams.get("policy", policy_for(env))
+    model_class = algorithm_classes()[spec.algo]
+    return model_class(policy, env, seed=spec.seed, verbose=0, device=spec.device, tensorboard_log=tensorboard_log, **kwargs)
+
+
+def check_specs(specs: Sequence[RunSpec]) -> None:
+    """
+    Build each distinct (algorithm, task, hyperparameters) model once, without training, so that a value out of range
+    (``sera_alpha=2``) or a bad ``policy_kwargs`` is refused before the first run starts: ``ValueError`` naming the run.
+    """
+    seen = set()
+    for spec in specs:
+        key = json.dumps([spec.algo, spec.env_id, spec.hyperparams], sort_keys=True, default=str)
+        if key in seen:
+            continue
+        seen.add(key)
+        env = make_vec_env(spec.env_id, n_envs=1, env_kwargs=spec.hyperparams.get("env_kwargs") or {})
+        try:
+            make_model(spec, env)
+        except (ValueError, TypeError, KeyError, SyntaxError, NameError) as error:
+            raise ValueError(f"{spec.variant} on {spec.env_id}: {type(error).__name__}: {error}") from None
+        finally:
+            env.close()
+
+
+def policy_for(env: VecEnv) -> str:
+    """``"CTDEPolicy"`` for a multi-agent CTDE task (Dict observation with a state), else ``"MlpPolicy"``."""
+    space = env.observation_space
+    return "CTDEPolicy" if isinstance(space, spaces.Dict) and STATE_KEY in space.spaces else "MlpPolicy"
+
+
+def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
+    """
+    Train one run in its folder (made by :func:`assign_folders`), evaluating every ``spec.eval_freq`` steps; a
+    finished run is read back.
+    """
+    folder = Path(folder)
+    if (folder / RESULT_FILE).exists():
+        return load_result(folder)
+    if spec.num_threads is not None:
+        th.set_num_threads(spec.num_threads)
+    env_kwargs = spec.hyperparams.get("env_kwargs") or {}
+    n_envs = int(spec.hyperparams.get("n_envs", 1))
+    env = make_vec_env(spec.env_id, n_envs=n_envs, seed=spec.seed, monitor_dir=str(folder), env_kwargs=env_kwargs)
+    eval_env = make_vec_env(spec.env_id, n_envs=1, seed=spec.seed + 10_000, env_kwargs=env_kwargs)
+    model = make_model(spec, env, tensorboard_log=str(folder))
+    callback = InitialStateBiasCallback(
+        eval_env,
+        eval_freq=max(spec.eval_freq // n_envs, 1),
+        n_eval_episodes=spec.n_eval_episodes,
+        log_path=str(folder),
+        verbose=0,
+    )
+    start = time.perf_counter()
+    model.learn(spec.n_timesteps, callback=callback, tb_log_name=f"{spec.variant}_seed{spec.seed}")
+    wall_time = time.perf_counter() - start
+    model.save(folder / env_name(spec.env_id))
+    env.close()
+    eval_env.close()
+    # Written last: its presence marks the run as finished. Threads and device as the worker saw them
+    result = {"wall_time_s": wall_time, "torch_threads": th.get_num_threads(), "device": str(model.device)}
+    (folder / RESULT_FILE).write_text(json.dumps(result))
+    return load_result(folder)
+
+
+def load_result(folder: Path) -> RunResult:
+    """A finished run of this engine or of ``sb3-sera train`` (its records, evaluations and bias records)."""
+    args_files = list(folder.glob("*/args.yml"))
+    if not args_files:
+        raise ValueError(f"{folder}: no <env_name>/args.yml record, so its seed and budget are unknown")
+    records = args_files[0].parent
+    args, config = read_record(records / "args.yml"), read_record(records / "config.yml")
+    evaluations = np.load(folder / "evaluations.npz")
+    returns = evaluations["results"].mean(axis=1)
+    bias: list[float] = []
+    if (folder / BIAS_FILE).exists():
+        bias_records = np.load(folder / BIAS_FILE)
+        bias = initial_state_bias(bias_records["values"], bias_records["discounted_returns"])
+    result_file = folder / RESULT_FILE
+    wall_time = json.loads(result_file.read_text())["wall_time_s"] if result_file.exists() else math.nan
+    budget = int(args.get("n_timesteps") or -1)
+    if budget <= 0:
+        # rl-zoo3 records -1 when the budget came from the YAML entry
+        budget = int(float(config["n_timesteps"]))
+    hyperparams = {key: value for key, value in config.items() if key != "n_timesteps"}
+    return RunResult(
+        variant=str(args.get("variant") or args["algo"]),
+        algo=str(args["algo"]),
+        env_id=str(args["env"]),
+        seed=int(args["seed"]),
+        n_timesteps=budget,
+        wall_time_s=wall_time,
+        final_return=float(returns[-1]),
+        timesteps=[int(t) for t in evaluations["timesteps"]],
+        returns=[float(r) for r in returns],
+        initial_state_bias=bias,
+        hyperparams=_plain(hyperparams),
+        folder=str(folder),
+    )
+
+
+def default_threads(n_jobs: int) -> int:
+    """torch threads per run when ``n_jobs`` runs share the machine: the cores divided among them, at least one."""
+    return max((os.cpu_count() or 1) // max(n_jobs, 1), 1)
+
+
+def execute(
+    specs: Sequence[RunSpec],
+    out_dir: str | Path,
+    n_jobs: int | None = None,
+    ray_address: str | None = None,
+    progress_bar: bool = True,
+) -> list[RunResult]:
+    """
+    Run every spec in its folder (:func:`assign_folders`): on a local process pool of ``n_jobs`` workers (default:
+    one per core), or as Ray tasks of one CPU each on the cluster at ``ray_address`` (``"auto"``: the one
+    ``ray start`` made on this machine). Finished runs are read back, not run again. A failed run does not stop
+    the others: once all have ended, ``RuntimeError`` names the failed ones. A failed run that had not evaluated
+    yet leaves no folder behind; one that had keeps its logs, without the ``result.json`` of a finished run.
+
+    :return: the results, in the order of ``specs``
+    """
+    folders = assign_folders(specs, out_dir)
+    if ray_address is not None:
+        outcomes = _execute_on_ray(specs, folders, ray_address, progress_bar)
+    else:
+        outcomes = _execute_locally(specs, folders, n_jobs, progress_bar)
+    failed = []
+    for spec, folder, outcome in zip(specs, folders, outcomes, strict=True):
+        if isinstance(outcome, BaseException):
+            failed.append(f"{spec.variant} on {spec.env_id} seed {spec.seed} ({folder}): {outcome}")
+            if not (folder / "evaluations.npz").exists():
+                shutil.rmtree(folder, ignore_errors=True)
+    if failed:
+        raise RuntimeError(f"{len(failed)} of {len(specs)} run(s) failed: " + "; ".join(failed))
+    return [outcome for outcome in outcomes if isinstance(outcome, RunResult)]
+
+
+def _execute_locally(
+    specs: Sequence[RunSpec], folders: Sequence[Path], n_jobs: int | None, progress_bar: bool
+) -> list[RunResult | BaseException]:
+    n_jobs = min(n_jobs or os.cpu_count() or 1, len(specs))
+    outcomes: dict[int, RunResult | BaseException] = {}
+    with (
+        ProcessPoolExecutor(max_workers=n_jobs, mp_context=get_context("spawn")) as pool,
+        tqdm(total=len(specs), desc="runs", disable=not progress_bar) as bar,
+    ):
+        futures = {
+            pool.submit(train_one, spec, folder): index
+            for index, (spec, folder) in enumerate(zip(specs, folders, strict=True))
+        }
+        for future in as_completed(futures):
+            error = future.exception()
+            outcomes[futures[future]] = error if error is not None else future.result()
+            bar.update()
+    return [outcomes[index] for index in range(len(specs))]
+
+
+def _execute_on_ray(
+    specs: Sequence[RunSpec], folders: Sequence[Path], address: str, progress_bar: bool
+) -> list[RunResult | BaseException]:
+    try:
+        import ray
+    except ImportError as error:
+        raise ImportError("--ray-address needs Ray: pip install 'sb3-sera[distributed]'") from error
+    ray.init(address=address, ignore_reinit_error=True, log_to_driver=False)
+    remote_train: Any = ray.remote(num_cpus=1)(train_one)
+    # Workers may start elsewhere: give them absolute folders
+    pending = {
+        remote_train.remote(spec, str(folder.resolve())): index
+        for index, (spec, folder) in enumerate(zip(specs, folders, strict=True))
+    }
+    outcomes: dict[int, RunResult | BaseException] = {}
+    with tqdm(total=len(specs), desc="runs (ray)", disable=not progress_bar) as bar:
+        while pending:
+            done, _ = ray.wait(list(pending), num_returns=1)
+            for ref in done:
+                index = pending.pop(ref)
+                try:
+                    outcomes[index] = ray.get(ref)
+                except Exception as error:  # a failed run is reported with the others
+                    outcomes[index] = error
+                bar.update()
+    return [outcomes[index] for index in range(len(specs))]
+
+
+def check_task(env_id: str) -> None:
+    """Raise ``ValueError`` for an env id Gymnasium does not know, listing this package's ids."""
+    if env_id not in gym.registry:
+        registered = sorted(name for name in gym.registry if name.startswith("sb3_sera/"))
+        raise ValueError(f"unknown task {env_id!r}; registered ids include {registered} and Gymnasium's")
