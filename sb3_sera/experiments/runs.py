@@ -98,7 +98,7 @@ def accepted_hyperparams(algo: str) -> set[str]:
     import inspect
 
     signature = inspect.signature(algorithm_classes()[algo])
-    return (set(signature.parameters) - set(ENGINE_KEYS)) | set(RUN_KEYS) - {"n_timesteps"}
+    return (set(signature.parameters) - set(ENGINE_KEYS)) | (set(RUN_KEYS) - {"n_timesteps"})
 
 
 def check_hyperparams(algo: str, hyperparams: dict[str, Any], where: str) -> None:
@@ -109,7 +109,7 @@ def check_hyperparams(algo: str, hyperparams: dict[str, Any], where: str) -> Non
             f"{where}: {zoo_only} are applied by rl-zoo3's training only: run this task with `sb3-sera train`, "
             "or give an entry without them"
         )
-    unknown = sorted(set(hyperparams) - accepted_hyperparams(algo) - {"n_timesteps"})
+    unknown = sorted(set(hyperparams) - accepted_hyperparams(algo))
     if unknown:
         raise ValueError(
             f"{where}: unknown hyperparameter(s) {unknown} for {algo}; allowed: {sorted(accepted_hyperparams(algo))}"
@@ -135,8 +135,8 @@ class RunSpec:
     #: Where the hyperparameters came from
     hyperparams_source: str = ""
 
-    def args(self) -> dict[str, Any]:
-        """The run's ``args.yml``: rl-zoo3's names where the zoo has one."""
+    def run_args(self) -> dict[str, Any]:
+        """The ``args.yml`` entries that, with ``config.yml``, make two runs the same run."""
         return {
             "algo": self.algo,
             "variant": self.variant,
@@ -145,6 +145,12 @@ class RunSpec:
             "n_timesteps": self.n_timesteps,
             "eval_freq": self.eval_freq,
             "eval_episodes": self.n_eval_episodes,
+        }
+
+    def args(self) -> dict[str, Any]:
+        """The run's ``args.yml`` (rl-zoo3's names where the zoo has one): :meth:`run_args`, then how it ran."""
+        return {
+            **self.run_args(),
             "num_threads": self.num_threads,
             "device": self.device,
             "hyperparams_source": self.hyperparams_source,
@@ -157,16 +163,7 @@ class RunSpec:
 
     def identity(self) -> dict[str, Any]:
         """What makes two runs the same run (threads, device and versions do not)."""
-        return {
-            "algo": self.algo,
-            "variant": self.variant,
-            "env": self.env_id,
-            "seed": self.seed,
-            "n_timesteps": self.n_timesteps,
-            "eval_freq": self.eval_freq,
-            "eval_episodes": self.n_eval_episodes,
-            "config": _plain(self.config()),
-        }
+        return {**self.run_args(), "config": _plain(self.config())}
 
 
 def make_spec(
@@ -291,7 +288,7 @@ def _id_of(folder: Path, env_id: str) -> int:
 def _same_run(folder: Path, spec: RunSpec) -> bool:
     records = records_dir(folder, spec.env_id)
     args, config = read_record(records / "args.yml"), read_record(records / "config.yml")
-    recorded = {key: args.get(key) for key in ("algo", "variant", "env", "seed", "n_timesteps", "eval_freq", "eval_episodes")}
+    recorded = {key: args.get(key) for key in spec.run_args()}
     return {**recorded, "config": config} == spec.identity()
 
 
