@@ -58,11 +58,14 @@ PAPER_RESULTS: dict[str, dict[str, tuple[float, float]]] = {
 #: Our variant names for the paper's columns
 PAPER_NAMES = {
     "serasac": "SERA", "ensemble_mean": "Ensemble Mean", "masac": "MASAC", "matd3": "MATD3", "mappo": "MAPPO",
-    "sera_nolr": "SERA-NoLR", "sera_median": "SERA-Median",
+    "sera_nolr": "SERA-NoLR", "sera_median": "SERA-Median", "sunrise": "SUNRISE", "ace": "ACE", "iet": "IET",
 }  # fmt: skip
 REFERENCE = "serasac"
 #: Variants in the order tables list them and colours are given (others follow, alphabetically)
-VARIANT_ORDER = ("serasac", "sera_nolr", "sera_median", "ensemble_mean", "sac", "masac", "matd3", "maddpg", "mappo")
+VARIANT_ORDER = (
+    "serasac", "sera_nolr", "sera_median", "ensemble_mean", "sac", "masac", "sunrise", "ace", "iet", "matd3", "maddpg",
+    "mappo",
+)  # fmt: skip
 #: Points of the common grid onto which curves evaluated at different steps are interpolated
 GRID_POINTS = 50
 #: What every interval in the report is
@@ -285,10 +288,20 @@ def section_notes(groups: Sequence[RunGroup], all_groups: Sequence[RunGroup]) ->
     return notes
 
 
-def variant_colors(variants: Sequence[str]) -> dict[str, str]:
-    """One colour per variant for every figure of a report, the known variants always in the same colour."""
-    ordered = sorted(set(variants), key=variant_rank)
-    return {variant: f"C{index % 10}" for index, variant in enumerate(ordered)}
+#: The known variants' colours, the same in every report (SAC and MASAC share one: never in the same section)
+VARIANT_COLORS = {
+    "serasac": "C0", "sac": "C1", "masac": "C1", "ensemble_mean": "C2", "matd3": "C3", "sera_nolr": "C4",
+    "sera_median": "C5", "sunrise": "C6", "maddpg": "C7", "ace": "C8", "iet": "C9", "mappo": "black",
+}  # fmt: skip
+
+
+def variant_colors(variants: Sequence[str]) -> dict[str, Any]:
+    """One colour per variant for every figure: the known variants' own, then the others from another palette."""
+    from matplotlib import colormaps
+
+    others = sorted(set(variants) - set(VARIANT_COLORS))
+    palette = colormaps["Dark2"]
+    return {**VARIANT_COLORS, **{variant: palette(index % palette.N) for index, variant in enumerate(others)}}
 
 
 def _pyplot() -> Any:
@@ -308,7 +321,7 @@ def _save(fig: Any, path: Path) -> None:
 
 
 def _draw_band(
-    ax: Any, series: Sequence[tuple[ArrayLike, ArrayLike]], reps: int, label: str, color: str, linestyle: str = "-"
+    ax: Any, series: Sequence[tuple[ArrayLike, ArrayLike]], reps: int, label: str, color: Any, linestyle: str = "-"
 ) -> str:
     """IQM over runs with its bootstrap interval as a band; returns the grid's sentence (empty for shared steps)."""
     grid, matrix, note = aligned(series)
@@ -330,7 +343,7 @@ def _linestyles(groups: Sequence[RunGroup]) -> dict[int, str]:
 
 
 def plot_curves(
-    groups: Sequence[RunGroup], attribute: str, ylabel: str, title: str, path: Path, colors: dict[str, str], reps: int,
+    groups: Sequence[RunGroup], attribute: str, ylabel: str, title: str, path: Path, colors: dict[str, Any], reps: int,
     zero_line: bool = False,
 ) -> list[str]:  # fmt: skip
     """
@@ -379,7 +392,7 @@ DIAGNOSTIC_PANELS = (
 )
 
 
-def plot_diagnostics(groups: Sequence[RunGroup], path: Path, colors: dict[str, str], reps: int) -> bool:
+def plot_diagnostics(groups: Sequence[RunGroup], path: Path, colors: dict[str, Any], reps: int) -> bool:
     """
     One panel per quantity of :data:`DIAGNOSTIC_PANELS`, IQM over runs and interval per group; per-critic learning
     rates summarized by their mean (line and band) and their smallest and largest (dotted). Returns whether any
@@ -428,7 +441,7 @@ def plot_diagnostics(groups: Sequence[RunGroup], path: Path, colors: dict[str, s
     return True
 
 
-def plot_auc_bars(groups: Sequence[RunGroup], path: Path, colors: dict[str, str], reps: int) -> None:
+def plot_auc_bars(groups: Sequence[RunGroup], path: Path, colors: dict[str, Any], reps: int) -> None:
     """Normalized AUC per group (paper Fig. 4b): IQM over runs as a bar, its interval as an error bar, runs as dots."""
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(1.6 * len(groups) + 2, 4.2))
@@ -491,7 +504,7 @@ def plot_correlation_matrices(groups: Sequence[RunGroup], path: Path, step: int 
     return f"Correlation matrices at {chosen}, averaged over each row's runs."
 
 
-def aggregate_section(sections: Sequence[list[RunGroup]], folder: Path, colors: dict[str, str], reps: int) -> list[str]:
+def aggregate_section(sections: Sequence[list[RunGroup]], folder: Path, colors: dict[str, Any], reps: int) -> list[str]:
     """
     Scores aggregated over task sections: each final return min-max normalized by the lowest and highest final
     return of any run in its section, then per variant (one settings group per section, the same number of runs
