@@ -72,7 +72,7 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True)
     comp = commands.add_parser(
         "compare",
-        help="train algorithms on one task for several seeds with hyperparams/<algo>.yml, then report them",
+        help="train algorithms on one task for several seeds with sb3_sera/hyperparams/<algo>.yml, then report them",
         description=compare.__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -91,7 +91,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--hyperparams",
         nargs="+",
         default=None,
-        help="overrides of hyperparams/<algo>.yml: key:value for every algorithm (learning_starts:1000), "
+        help="overrides of sb3_sera/hyperparams/<algo>.yml: key:value for every algorithm (learning_starts:1000), "
         "algo:key:value for one (serasac:sera_alpha:0.3); all checked before the first run",
     )
     _add_run_flags(comp)

@@ -2,7 +2,7 @@
 The run engine behind ``compare``, ``bench`` and the notebooks: one way to describe a training run, to resolve its
 hyperparameters and to record it, in rl-zoo3's layout so that the zoo's own runs read the same way.
 
-Hyperparameters come from where ``sb3-sera train`` takes them: the task's entry in ``hyperparams/<algo>.yml`` (this
+Hyperparameters come from where ``sb3-sera train`` takes them: the task's entry in ``sb3_sera/hyperparams/<algo>.yml`` (this
 package's file, else rl-zoo3's own), then the variant's or the command line's overrides. A run lives in
 ``<out>/<variant>/<env_name>_<id>/`` (ids from 1, as the zoo numbers them) and holds, as the zoo writes them,
 ``<env_name>/config.yml`` (the resolved hyperparameters) and ``<env_name>/args.yml`` (algorithm, variant, env id,
@@ -179,7 +179,7 @@ def make_spec(
     device: str = "auto",
 ) -> RunSpec:
     """
-    A run with the task's hyperparameters from ``hyperparams/<algo>.yml`` (see :func:`default_hyperparams`), then
+    A run with the task's hyperparameters from ``sb3_sera/hyperparams/<algo>.yml`` (see :func:`default_hyperparams`), then
     ``overrides``; ``ValueError`` for a key ``algo`` does not take.
     """
     defaults, source = default_hyperparams(algo, env_id)
