@@ -1,0 +1,267 @@
+"""ACE: an actor ensemble with look-ahead tree search (Zhang, Chen & Yao, AAAI 2019; SPEC section 4)."""
+
+from typing import Any, ClassVar, TypeVar
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.noise import ActionNoise
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
+from stable_baselines3.common.utils import polyak_update
+
+from sb3_sera.ace.policies import ACEPolicy, MlpPolicy
+from sb3_sera.common.checks import check_range
+
+SelfACE = TypeVar("SelfACE", bound="ACE")
+
+
+class DecayingNormalNoise(ActionNoise):
+    """
+    Gaussian exploration noise whose standard deviation the algorithm sets as training goes (ACE: from
+    ``exploration_noise`` at the start down to 0 at the end of ``learn``'s budget, linearly).
+
+    :param sigma: initial standard deviation, in the scaled action space ``[-1, 1]``
+    :param n_actions: action dimension
+    """
+
+    def __init__(self, sigma: float, n_actions: int) -> None:
+        super().__init__()
+        self.initial_sigma = sigma
+        self.sigma = sigma
+        self.n_actions = n_actions
+
+    def __call__(self) -> np.ndarray:
+        return np.random.normal(0.0, self.sigma, size=self.n_actions).astype(np.float32)
+
+    def __repr__(self) -> str:
+        return f"DecayingNormalNoise(sigma={self.sigma}, initial_sigma={self.initial_sigma})"
+
+
+class ACE(OffPolicyAlgorithm):
+    """
+    ACE: Actor Ensemble with tree search. DDPG-style and deterministic: ``n_actors`` actor heads and one critic over a
+    shared state feature, with learned reward and transition models in feature space. Each action is chosen by a
+    look-ahead tree of depth ``depth`` over the heads' proposals (:mod:`sb3_sera.ace.tree`), plus Gaussian noise
+    decaying linearly from ``exploration_noise`` to 0 over the run. The critic regresses the tree's value on
+    ``r + gamma * V_d(s')`` from the target network, with the reward model's loss and the next-value alignment loss,
+    all weighted by ``critic_loss_weight``; the heads ascend the tree's value of their own actions, averaged over
+    heads. Not the 2024 causality-aware "ACE".
+
+    Defaults are the authors': Adam 1e-4 for every network, batch 64, tau 1e-3, gamma 0.99, five heads, depth 2,
+    running observation normalization (policy kwarg ``normalize_observations``).
+
+    :param policy: ``"MlpPolicy"`` (flat Box observations)
+    :param env: the environment (a Box action space)
+    :param learning_rate: Adam's learning rate for every network, > 0, or a schedule
+    :param buffer_size: replay buffer size
+    :param learning_starts: steps of uniform random actions before learning starts
+    :param batch_size: minibatch size
+    :param tau: Polyak coefficient of the target network, in [0, 1]
+    :param gamma: discount factor, in [0, 1] (also the tree's)
+    :param train_freq: update every ``train_freq`` steps, or ``(n, "step" | "episode")``
+    :param gradient_steps: gradient steps per rollout (-1: as many as env steps)
+    :param action_noise: exploration noise; None: :class:`DecayingNormalNoise` from ``exploration_noise``
+    :param exploration_noise: initial standard deviation of the decaying Gaussian noise, >= 0 (0: none)
+    :param critic_loss_weight: weight of the critic's, reward model's and next-value losses, > 0
+    :param align_next_value: add the authors' loss aligning the tree's predicted next value with the target's
+    :param replay_buffer_class: replay buffer class
+    :param replay_buffer_kwargs: its keyword arguments
+    :param optimize_memory_usage: SB3's memory-efficient buffer
+    :param n_steps: n-step returns when > 1
+    :param stats_window_size: window of the rollout statistics
+    :param tensorboard_log: TensorBoard folder
+    :param policy_kwargs: :class:`~sb3_sera.ace.policies.ACEPolicy`'s (``n_actors``, ``depth``, ``feature_dim``,
+        ``hidden``, ``normalize_observations``)
+    :param verbose: verbosity
+    :param seed: seed
+    :param device: torch device
+    :param _init_setup_model: build the networks now
+    """
+
+    #: SB3's names for Dict observations reach the policy too, so that a multi-agent task gets ACE's own reason
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
+        "MlpPolicy": MlpPolicy,
+        "MultiInputPolicy": MlpPolicy,
+        "CTDEPolicy": MlpPolicy,
+    }
+    policy: ACEPolicy
+
+    def __init__(
+        self,
+        policy: str | type[ACEPolicy],
+        env: GymEnv | str,
+        learning_rate: float | Schedule = 1e-4,
+        buffer_size: int = 1_000_000,
+        learning_starts: int = 100,
+        batch_size: int = 64,
+        tau: float = 1e-3,
+        gamma: float = 0.99,
+        train_freq: int | tuple[int, str] = 1,
+        gradient_steps: int = 1,
+        action_noise: ActionNoise | None = None,
+        exploration_noise: float = 0.3,
+        critic_loss_weight: float = 10.0,
+        align_next_value: bool = True,
+        replay_buffer_class: type[ReplayBuffer] | None = None,
+        replay_buffer_kwargs: dict[str, Any] | None = None,
+        optimize_memory_usage: bool = False,
+        n_steps: int = 1,
+        stats_window_size: int = 100,
+        tensorboard_log: str | None = None,
+        policy_kwargs: dict[str, Any] | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: th.device | str = "auto",
+        _init_setup_model: bool = True,
+    ) -> None:
+        super().__init__(
+            policy,
+            env,
+            learning_rate,
+            buffer_size,
+            learning_starts,
+            batch_size,
+            tau,
+            gamma,
+            train_freq,
+            gradient_steps,
+            action_noise=action_noise,
+            replay_buffer_class=replay_buffer_class,
+            replay_buffer_kwargs=replay_buffer_kwargs,
+            optimize_memory_usage=optimize_memory_usage,
+            n_steps=n_steps,
+            policy_kwargs=policy_kwargs,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            verbose=verbose,
+            device=device,
+            seed=seed,
+            sde_support=False,
+            supported_action_spaces=(spaces.Box,),
+            support_multi_env=True,
+        )
+        if not callable(learning_rate):
+            check_range("learning_rate", learning_rate, 0.0, None, low_inclusive=False)
+        check_range("tau", tau, 0.0, 1.0)
+        check_range("gamma", gamma, 0.0, 1.0)
+        check_range("exploration_noise", exploration_noise, 0.0, None)
+        check_range("critic_loss_weight", critic_loss_weight, 0.0, None, low_inclusive=False)
+        self.exploration_noise = float(exploration_noise)
+        self.critic_loss_weight = float(critic_loss_weight)
+        self.align_next_value = align_next_value
+        if _init_setup_model:
+            self._setup_model()
+
+    def _setup_model(self) -> None:
+        # The tree discounts its model steps with the algorithm's gamma
+        self.policy_kwargs = {**self.policy_kwargs, "gamma": self.gamma}
+        super()._setup_model()
+        if self.action_noise is None and self.exploration_noise > 0:
+            n_actions = int(np.prod(self.action_space.shape))  # type: ignore[arg-type]
+            self.action_noise = DecayingNormalNoise(self.exploration_noise, n_actions)
+
+    def _on_step(self) -> None:
+        # The exploration noise decays linearly to 0 over the run
+        if isinstance(self.action_noise, DecayingNormalNoise):
+            self.action_noise.sigma = self.action_noise.initial_sigma * self._current_progress_remaining
+
+    def _store_transition(
+        self,
+        replay_buffer: ReplayBuffer,
+        buffer_action: np.ndarray,
+        new_obs: np.ndarray | dict[str, np.ndarray],
+        reward: np.ndarray,
+        dones: np.ndarray,
+        infos: list[dict[str, Any]],
+    ) -> None:
+        # The observation normalizer follows every observation collected for training
+        normalizer = self.policy.network.normalizer
+        if normalizer is not None:
+            assert isinstance(new_obs, np.ndarray)
+            with th.no_grad():
+                normalizer.update(th.as_tensor(new_obs, dtype=th.float32, device=self.device).reshape(len(new_obs), -1))
+        super()._store_transition(replay_buffer, buffer_action, new_obs, reward, dones, infos)
+
+    def train(self, gradient_steps: int, batch_size: int = 100) -> None:
+        self.policy.set_training_mode(True)
+        self._update_learning_rate([self.policy.optimizer])
+        if gradient_steps == 0:
+            return
+        network, optimizer = self.policy.network, self.policy.optimizer
+        actor_parameters = network.actor_parameters()
+        losses: dict[str, list[float]] = {"critic_loss": [], "reward_loss": [], "next_value_loss": [], "actor_loss": []}
+        for _ in range(gradient_steps):
+            replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
+            discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
+            with th.no_grad():
+                # y = r + gamma (1 - done) V_d(s') from the target network's tree
+                next_values = self.policy.value(replay_data.next_observations, target=True)
+                target_q_values = replay_data.rewards + (1 - replay_data.dones) * discounts * next_values
+
+            # Critic and models: the tree's value of the replayed action against y, the reward model against r
+            features = network.phi(replay_data.observations)
+            current = self.policy.tree(features, replay_data.actions)
+            critic_loss = 0.5 * (current.q_value - target_q_values).pow(2).mean()
+            loss = critic_loss
+            if current.reward is not None:
+                reward_loss = 0.5 * (current.reward - replay_data.rewards).pow(2).mean()
+                loss = loss + reward_loss
+                losses["reward_loss"].append(reward_loss.item())
+                if self.align_next_value and current.next_value is not None:
+                    next_value_loss = 0.5 * (current.next_value - next_values).pow(2).mean()
+                    loss = loss + next_value_loss
+                    losses["next_value_loss"].append(next_value_loss.item())
+            optimizer.zero_grad()
+            (self.critic_loss_weight * loss).backward()
+            optimizer.step()
+            losses["critic_loss"].append(critic_loss.item())
+
+            # Actors: each head ascends the tree's value of its own action (critic and models held fixed)
+            features = network.phi(replay_data.observations)
+            proposals = network.actors(features)
+            expanded = features.detach().unsqueeze(1).expand(-1, proposals.shape[1], -1)
+            actor_loss = -self.policy.tree(expanded, proposals).q_value.mean()
+            optimizer.zero_grad()
+            actor_loss.backward(inputs=actor_parameters)
+            optimizer.step()
+            losses["actor_loss"].append(actor_loss.item())
+
+            polyak_update(network.parameters(), self.policy.network_target.parameters(), self.tau)
+
+        self._n_updates += gradient_steps
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        for name, values in losses.items():
+            if values:
+                self.logger.record(f"train/{name}", float(np.mean(values)))
+        if isinstance(self.action_noise, DecayingNormalNoise):
+            self.logger.record("train/exploration_noise", self.action_noise.sigma)
+        with th.no_grad():
+            _, heads = self.policy.choose(replay_data.observations)
+        # Which head the tree picks, over the last batch: the share of the most picked one and the number picked
+        counts = th.bincount(heads, minlength=self.policy.n_actors).float()
+        self.logger.record("train/top_actor_share", float(counts.max() / counts.sum()))
+        self.logger.record("train/actors_picked", int((counts > 0).sum()))
+
+    def learn(
+        self: SelfACE,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 4,
+        tb_log_name: str = "ACE",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfACE:
+        return super().learn(
+            total_timesteps=total_timesteps,
+            callback=callback,
+            log_interval=log_interval,
+            tb_log_name=tb_log_name,
+            reset_num_timesteps=reset_num_timesteps,
+            progress_bar=progress_bar,
+        )
+
+    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
+        return ["policy", "policy.optimizer"], []
