@@ -16,6 +16,7 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from sb3_sera.common.callbacks import InitialStateBiasCallback
 from sb3_sera.ctde.algorithms import MADDPG, MAPPO, MASAC, MATD3
 from sb3_sera.sera import SERASAC
+from sb3_sera.sunrise import SUNRISE
 
 #: The package's algorithms under their zoo names
 ZOO_ALGOS: dict[str, type[BaseAlgorithm]] = {
@@ -24,6 +25,7 @@ ZOO_ALGOS: dict[str, type[BaseAlgorithm]] = {
     "matd3": MATD3,
     "maddpg": MADDPG,
     "mappo": MAPPO,
+    "sunrise": SUNRISE,
 }
 #: The multi-agent algorithms tune in the search space of the SB3 algorithm they are built on
 ZOO_BASE_ALGOS = {"masac": "sac", "matd3": "td3", "maddpg": "ddpg", "mappo": "ppo"}
@@ -56,6 +58,19 @@ def sample_serasac_params(trial: Any, n_actions: int, n_envs: int, additional_ar
         sera_temperature=trial.suggest_float("sera_temperature", 0.1, 10.0, log=True),
         critic_lr_max=trial.suggest_float("critic_lr_max", 1e-4, 2e-3, log=True),
         disagreement_coef=trial.suggest_float("disagreement_coef", 0.0, 0.1),
+    )
+    return hyperparams
+
+
+def sample_sunrise_params(trial: Any, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
+    """rl-zoo3's SAC search space plus SUNRISE's ensemble size N, backup temperature T and UCB lambda."""
+    from rl_zoo3.hyperparams_opt import sample_sac_params
+
+    hyperparams = sample_sac_params(trial, n_actions, n_envs, additional_args)
+    hyperparams.update(
+        n_members=trial.suggest_int("n_members", 2, 10),
+        backup_temperature=trial.suggest_float("backup_temperature", 1.0, 50.0, log=True),
+        ucb_lambda=trial.suggest_categorical("ucb_lambda", [0.0, 1.0, 10.0]),
     )
     return hyperparams
 
@@ -101,6 +116,7 @@ def register_with_zoo(command: str = "train") -> None:
     exp_manager.EvalCallback = InitialStateBiasCallback  # type: ignore[misc]
     samplers, converters = hyperparams_opt.HYPERPARAMS_SAMPLER, hyperparams_opt.HYPERPARAMS_CONVERTER
     samplers["serasac"], converters["serasac"] = sample_serasac_params, convert_serasac_params
+    samplers["sunrise"], converters["sunrise"] = sample_sunrise_params, hyperparams_opt.convert_offpolicy_params
     for algo, base in ZOO_BASE_ALGOS.items():
         samplers[algo], converters[algo] = samplers[base], converters[base]
 

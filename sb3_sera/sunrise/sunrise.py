@@ -1,0 +1,417 @@
+"""SUNRISE: an ensemble of SAC agents with weighted Bellman backups and UCB exploration (docs/SPEC.md, section 4)."""
+
+from typing import Any, ClassVar, TypeVar, cast
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.base_class import maybe_make_env
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.noise import ActionNoise
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
+from stable_baselines3.common.utils import polyak_update
+
+from sb3_sera.common.checks import check_int, check_range
+from sb3_sera.sunrise.buffers import SUNRISEReplayBuffer, SUNRISEReplayBufferSamples
+from sb3_sera.sunrise.ensemble import backup_weight, ensemble_std, masked_mean, weighted_bellman_loss
+from sb3_sera.sunrise.policies import (
+    DEFAULT_N_MEMBERS,
+    SINGLE_AGENT_ONLY,
+    EnsembleActor,
+    EnsembleCritic,
+    MlpPolicy,
+    SUNRISEPolicy,
+)
+
+SelfSUNRISE = TypeVar("SelfSUNRISE", bound="SUNRISE")
+
+
+class SUNRISE(OffPolicyAlgorithm):
+    """
+    SUNRISE (Lee, Laskin, Srinivas and Abbeel, ICML 2021): ``n_members`` independent SAC agents, each with its own
+    actor, twin critics, target critics and entropy coefficient, trained on its own bootstrap mask of the replayed
+    transitions, with Bellman backups weighted by the ensemble's disagreement and UCB exploration. Read from the
+    authors' code (pokaxpoka/sunrise, ``neurips20_sac_ensemble.py``); the members are batched, not looped.
+
+    Per gradient step, on one replayed batch: ``std_Q`` is the standard deviation over every target critic of every
+    member at ``s'`` (each member with its own next action), ``w = sigmoid(-std_Q * T) + 0.5``; member ``m``'s
+    critics regress on its own clipped double-Q soft target with loss
+    ``sum_s w * mask_m * (Q - y_m)^2 / (sum_s mask_m + 1)``, and its actor and entropy coefficient use the same
+    masked mean of SAC's losses (actor weight 1, the authors' default).
+
+    It is an ``OffPolicyAlgorithm`` as sb3-contrib's TQC, not a subclass of SB3's ``SAC``: code that recognises a
+    SAC (``isinstance``) assumes one actor, twin critics and one scalar entropy coefficient, which SUNRISE's
+    ``(N,)`` entropy coefficients and ``(N, S, A)`` ensemble actions are not. Its training step is SAC's, per member.
+
+    :param policy: The policy model to use: "MlpPolicy" (:class:`~sb3_sera.sunrise.policies.SUNRISEPolicy`)
+    :param env: The environment to learn from (if registered in Gym, can be str); Box observations
+    :param learning_rate: learning rate of Adam for the actors, critics and entropy coefficients, a float > 0 or a
+        schedule of the progress remaining (from 1 to 0)
+    :param buffer_size: size of the replay buffer
+    :param learning_starts: how many steps of the model to collect transitions for before learning starts
+    :param batch_size: Minibatch size for each gradient update, shared by the members
+    :param tau: the soft update coefficient of the target critics ("Polyak update"), in [0, 1]
+    :param gamma: the discount factor, in [0, 1]
+    :param train_freq: Update the model every ``train_freq`` steps, or ``(n, "step" | "episode")``
+    :param gradient_steps: How many gradient steps to do after each rollout (``-1``: as many as env steps)
+    :param action_noise: the action noise type (None by default)
+    :param replay_buffer_class: Replay buffer class to use: :class:`~sb3_sera.sunrise.buffers.SUNRISEReplayBuffer`
+        (None) or a subclass of it
+    :param replay_buffer_kwargs: Keyword arguments to pass to the replay buffer on creation (``n_members`` and
+        ``bootstrap_prob`` come from SUNRISE's own arguments)
+    :param optimize_memory_usage: Enable a memory efficient variant of the replay buffer
+    :param ent_coef: Entropy regularization coefficient of every member: a float > 0, ``"auto"`` or
+        ``"auto_<init>"`` (each member learns its own)
+    :param target_update_interval: update the target critics every ``target_update_interval`` gradient steps,
+        counted across ``train()`` calls (as SERASAC)
+    :param target_entropy: target entropy when learning ``ent_coef`` (``"auto"``: ``-dim(A)``)
+    :param stats_window_size: Window size for the rollout logging
+    :param n_members: ensemble size ``N``, >= 1 (the authors' 5)
+    :param bootstrap_prob: probability that a member trains on a transition (Bernoulli mask drawn when it is
+        stored), in (0, 1] (the authors' 0.5; 1 trains every member on every transition)
+    :param backup_temperature: temperature ``T >= 0`` of the backup weight ``sigmoid(-std_Q * T) + 0.5``
+        (the authors' 20; 0 weighs every backup 1)
+    :param ucb_lambda: ``lambda >= 0`` of the UCB exploration ``mean_Q + lambda * std_Q`` over the members'
+        proposed actions; 0 (the authors' default) lets one random member act for a whole episode
+    :param tensorboard_log: the log location for tensorboard (if None, no logging)
+    :param policy_kwargs: additional arguments to be passed to the policy on creation, e.g. ``net_arch`` and
+        ``n_critics`` (critics per member, 2)
+    :param verbose: Verbosity level: 0 for no output, 1 for info messages, 2 for debug messages
+    :param seed: Seed for the pseudo random generators
+    :param device: Device (cpu, cuda, ...) on which the code should be run.
+    :param _init_setup_model: Whether or not to build the network at the creation of the instance
+    """
+
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpPolicy": MlpPolicy}
+    policy: SUNRISEPolicy
+    actor: EnsembleActor
+    critic: EnsembleCritic
+    critic_target: EnsembleCritic
+    replay_buffer: SUNRISEReplayBuffer
+
+    def __init__(
+        self,
+        policy: str | type[SUNRISEPolicy],
+        env: GymEnv | str,
+        learning_rate: float | Schedule = 3e-4,
+        buffer_size: int = 1_000_000,
+        learning_starts: int = 100,
+        batch_size: int = 256,
+        tau: float = 0.005,
+        gamma: float = 0.99,
+        train_freq: int | tuple[int, str] = 1,
+        gradient_steps: int = 1,
+        action_noise: ActionNoise | None = None,
+        replay_buffer_class: type[ReplayBuffer] | None = None,
+        replay_buffer_kwargs: dict[str, Any] | None = None,
+        optimize_memory_usage: bool = False,
+        ent_coef: str | float = "auto",
+        target_update_interval: int = 1,
+        target_entropy: str | float = "auto",
+        stats_window_size: int = 100,
+        n_members: int = DEFAULT_N_MEMBERS,
+        bootstrap_prob: float = 0.5,
+        backup_temperature: float = 20.0,
+        ucb_lambda: float = 0.0,
+        tensorboard_log: str | None = None,
+        policy_kwargs: dict[str, Any] | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: th.device | str = "auto",
+        _init_setup_model: bool = True,
+    ):
+        # Made here as SB3 would make it, so that a Dict observation space gets SUNRISE's error, not SB3's advice
+        env = maybe_make_env(env, verbose)
+        if policy in ("CTDEPolicy", "MultiInputPolicy"):
+            raise ValueError(f"{SINGLE_AGENT_ONLY}: got policy={policy!r}")
+        if env is not None and isinstance(env.observation_space, spaces.Dict):
+            raise ValueError(f"{SINGLE_AGENT_ONLY}: got a Dict observation space with keys {list(env.observation_space)}")
+        if replay_buffer_class is not None and not issubclass(replay_buffer_class, SUNRISEReplayBuffer):
+            raise ValueError(
+                f"replay_buffer_class={replay_buffer_class.__name__} is invalid: SUNRISE needs SUNRISEReplayBuffer "
+                "(None) or a subclass of it, which stores each transition's bootstrap masks"
+            )
+        self.n_members = check_int("n_members", n_members, 1)
+        self.bootstrap_prob = check_range("bootstrap_prob", bootstrap_prob, 0.0, 1.0, low_inclusive=False)
+        self.backup_temperature = check_range("backup_temperature", backup_temperature, 0.0, None)
+        self.ucb_lambda = check_range("ucb_lambda", ucb_lambda, 0.0, None)
+        for argument, kwargs, names in (
+            ("policy_kwargs", policy_kwargs, ("n_members", "ucb_lambda")),
+            ("replay_buffer_kwargs", replay_buffer_kwargs, ("n_members", "bootstrap_prob")),
+        ):
+            for name in sorted(set(names) & set(kwargs or {})):
+                raise ValueError(f"{argument}[{name!r}] is invalid: pass {name} to SUNRISE itself")
+        super().__init__(
+            policy,
+            env,
+            **_check_sac_hyperparameters(
+                learning_rate=learning_rate,
+                buffer_size=buffer_size,
+                learning_starts=learning_starts,
+                batch_size=batch_size,
+                tau=tau,
+                gamma=gamma,
+                gradient_steps=gradient_steps,
+            ),
+            train_freq=train_freq,
+            action_noise=action_noise,
+            replay_buffer_class=replay_buffer_class or SUNRISEReplayBuffer,
+            replay_buffer_kwargs=replay_buffer_kwargs,
+            optimize_memory_usage=optimize_memory_usage,
+            policy_kwargs=policy_kwargs,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            verbose=verbose,
+            device=device,
+            seed=seed,
+            sde_support=False,
+            supported_action_spaces=(spaces.Box,),
+            support_multi_env=True,
+        )
+        self.target_update_interval = check_int("target_update_interval", target_update_interval, 1)
+        self.ent_coef = _check_ent_coef(ent_coef)
+        self.target_entropy = target_entropy
+        self.log_ent_coef: th.Tensor | None = None
+        self.ent_coef_optimizer: th.optim.Adam | None = None
+        if _init_setup_model:
+            self._setup_model()
+
+    def _setup_model(self) -> None:
+        # The ensemble's settings reach the buffer and the policy from SUNRISE's own (also when load() is given them)
+        self.replay_buffer_kwargs = {
+            **self.replay_buffer_kwargs,
+            "n_members": self.n_members,
+            "bootstrap_prob": self.bootstrap_prob,
+        }
+        self.policy_kwargs = {**self.policy_kwargs, "n_members": self.n_members, "ucb_lambda": self.ucb_lambda}
+        super()._setup_model()
+        self.actor = self.policy.actor
+        self.critic = self.policy.critic
+        self.critic_target = self.policy.critic_target
+        #: The member acting in each env until its episode ends (``ucb_lambda = 0``); drawn when acting starts
+        self._episode_members: np.ndarray | None = None
+        if self.target_entropy == "auto":
+            self.target_entropy = float(-np.prod(self.action_space.shape).astype(np.float32))  # type: ignore[arg-type]
+        else:
+            self.target_entropy = check_range("target_entropy", self.target_entropy, None, None)
+        if isinstance(self.ent_coef, str):
+            # One learned log-coefficient per member ("auto" or "auto_<initial value>")
+            init_value = float(self.ent_coef.split("_")[1]) if "_" in self.ent_coef else 1.0
+            self.log_ent_coef = th.full((self.n_members,), np.log(init_value), device=self.device).requires_grad_(True)
+            self.ent_coef_optimizer = th.optim.Adam([self.log_ent_coef], lr=self.lr_schedule(1))
+        else:
+            self.ent_coef_tensor = th.full((self.n_members,), float(self.ent_coef), device=self.device)
+
+    def _sample_action(
+        self, learning_starts: int, action_noise: ActionNoise | None = None, n_envs: int = 1
+    ) -> tuple[np.ndarray, np.ndarray]:
+        if self.ucb_lambda > 0:
+            return super()._sample_action(learning_starts, action_noise, n_envs)
+        if self._episode_members is None or len(self._episode_members) != n_envs:
+            self._episode_members = np.random.randint(self.n_members, size=n_envs)
+        self.policy.episode_members = th.as_tensor(self._episode_members, device=self.device)
+        try:
+            return super()._sample_action(learning_starts, action_noise, n_envs)
+        finally:
+            self.policy.episode_members = None
+
+    def _store_transition(
+        self,
+        replay_buffer: ReplayBuffer,
+        buffer_action: np.ndarray,
+        new_obs: np.ndarray | dict[str, np.ndarray],
+        reward: np.ndarray,
+        dones: np.ndarray,
+        infos: list[dict[str, Any]],
+    ) -> None:
+        super()._store_transition(replay_buffer, buffer_action, new_obs, reward, dones, infos)
+        if self._episode_members is not None:
+            # A new episode in an env: a new member, drawn at random, acts in it
+            ended = np.flatnonzero(dones)
+            self._episode_members[ended] = np.random.randint(self.n_members, size=len(ended))
+
+    def train(self, gradient_steps: int, batch_size: int = 64) -> None:
+        self.policy.set_training_mode(True)
+        optimizers = [self.actor.optimizer, self.critic.optimizer]
+        if self.ent_coef_optimizer is not None:
+            optimizers.append(self.ent_coef_optimizer)
+        self._update_learning_rate(optimizers)
+        if gradient_steps == 0:
+            self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+            return
+
+        logged: dict[str, list[th.Tensor]] = {}
+        for gradient_step in range(gradient_steps):
+            # SUNRISEReplayBuffer._get_samples gives the masks with SB3's samples
+            replay_data = cast(SUNRISEReplayBufferSamples, self.replay_buffer.sample(batch_size, env=self._vec_normalize_env))
+            step_values = self._gradient_step(replay_data, gradient_step)
+            for key, value in step_values.items():
+                logged.setdefault(key, []).append(value)
+            if (self._n_updates + gradient_step) % self.target_update_interval == 0:
+                polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
+
+        self._n_updates += gradient_steps
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        means = th.stack([th.stack(values).mean() for values in logged.values()]).tolist()
+        for key, value in zip(logged, means, strict=True):
+            self.logger.record(f"train/{key}", value)
+
+    def _gradient_step(self, replay_data: SUNRISEReplayBufferSamples, gradient_step: int = 0) -> dict[str, th.Tensor]:
+        """
+        One SAC update of every member on one replayed batch (``S`` samples), in SB3's SAC order: entropy
+        coefficients (their values before this step enter the other losses), critics, actors. The two draws of the
+        actors' Gaussian noise are, in this order, at the replayed states and at the next states, each of shape
+        ``(N, S, A)``.
+
+        :param replay_data: the batch, with its bootstrap masks
+        :param gradient_step: the step's index within the current ``train()`` call, for error messages
+        :return: the step's means over members of SAC's logged quantities, and the mean backup weight and ensemble
+            standard deviation, as tensors
+        """
+        masks = replay_data.masks.T  # (N, S)
+        actions_pi, log_prob = self.actor.action_log_prob(replay_data.observations)
+        assert isinstance(self.target_entropy, float)
+        ent_coef_loss = None
+        if self.ent_coef_optimizer is not None and self.log_ent_coef is not None:
+            # Each member's coefficient, detached so that only its own loss trains it
+            ent_coef = th.exp(self.log_ent_coef.detach())
+            losses = -(self.log_ent_coef.unsqueeze(1) * (log_prob + self.target_entropy).detach())
+            ent_coef_loss = masked_mean(losses, masks).sum()
+        else:
+            ent_coef = self.ent_coef_tensor
+
+        with th.no_grad():
+            # Each member's next action, all target critics on them: (N, C, S)
+            next_actions, next_log_prob = self.actor.action_log_prob(replay_data.next_observations)
+            next_q_values = self.critic_target.q_values(replay_data.next_observations, next_actions)
+            std_q = ensemble_std(next_q_values)
+            weights = backup_weight(std_q, self.backup_temperature)
+            # Member m's clipped double-Q soft target y_m, (N, S)
+            next_values = next_q_values.min(dim=1).values - ent_coef.unsqueeze(1) * next_log_prob
+            target_q_values = replay_data.rewards.T + (1 - replay_data.dones.T) * self.gamma * next_values
+        current_q_values = self.critic.q_values(replay_data.observations, replay_data.actions)
+        critic_loss = weighted_bellman_loss(current_q_values, target_q_values, weights, masks).sum()
+
+        # Nothing has changed yet: stop here if a value is not finite (a cause named before its consequences)
+        quantities = {"entropy coefficient": ent_coef, "TD target": target_q_values, "critic loss": critic_loss}
+        if ent_coef_loss is not None:
+            quantities["entropy coefficient loss"] = ent_coef_loss
+        self._check_finite(gradient_step, quantities)
+        if ent_coef_loss is not None and self.ent_coef_optimizer is not None:
+            self.ent_coef_optimizer.zero_grad()
+            ent_coef_loss.backward()
+            self.ent_coef_optimizer.step()
+        self.critic.optimizer.zero_grad()
+        critic_loss.backward()
+        self.critic.optimizer.step()
+
+        # Each member's actor against the minimum of its own (updated) critics
+        q_values_pi = self.critic.q_values(replay_data.observations, actions_pi).min(dim=1).values
+        actor_loss = masked_mean(ent_coef.unsqueeze(1) * log_prob - q_values_pi, masks).sum()
+        self._check_finite(gradient_step, {"actor loss": actor_loss})
+        self.actor.optimizer.zero_grad()
+        # Gradients for the actors only: the critics' weight gradients would be computed and thrown away
+        actor_loss.backward(inputs=list(self.actor.parameters()))
+        self.actor.optimizer.step()
+
+        values = dict(
+            ent_coef=ent_coef.mean(),
+            critic_loss=critic_loss.detach() / self.n_members,
+            actor_loss=actor_loss.detach() / self.n_members,
+            backup_weight=weights.mean(),
+            ensemble_std=std_q.mean(),
+        )
+        if ent_coef_loss is not None:
+            values["ent_coef_loss"] = ent_coef_loss.detach() / self.n_members
+        return values
+
+    def _check_finite(self, gradient_step: int, quantities: dict[str, th.Tensor]) -> None:
+        """
+        Raise ``FloatingPointError`` naming the first non-finite quantity, before the parameters it drives change.
+
+        :param gradient_step: the step's index within the current ``train()`` call
+        :param quantities: tensors by name, in the order in which a cause precedes its consequences (one device
+            synchronization when all are finite)
+        """
+        if bool(th.isfinite(th.stack([value.sum() for value in quantities.values()])).all()):
+            return
+        for name, value in quantities.items():
+            if not bool(th.isfinite(value).all()):
+                raise FloatingPointError(
+                    f"Non-finite {name} at gradient step {self._n_updates + gradient_step + 1} "
+                    f"(num_timesteps={self.num_timesteps}): training stopped before the parameters it drives were "
+                    "changed, so the model can still be saved. Check the rewards and observations for inf/NaN, "
+                    "or lower the learning rate."
+                )
+
+    def learn(
+        self: SelfSUNRISE,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 4,
+        tb_log_name: str = "SUNRISE",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfSUNRISE:
+        return super().learn(
+            total_timesteps=total_timesteps,
+            callback=callback,
+            log_interval=log_interval,
+            tb_log_name=tb_log_name,
+            reset_num_timesteps=reset_num_timesteps,
+            progress_bar=progress_bar,
+        )
+
+    def _excluded_save_params(self) -> list[str]:
+        return [*super()._excluded_save_params(), "actor", "critic", "critic_target", "_episode_members"]
+
+    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
+        state_dicts = ["policy", "actor.optimizer", "critic.optimizer"]
+        if self.ent_coef_optimizer is not None:
+            return [*state_dicts, "ent_coef_optimizer"], ["log_ent_coef"]
+        return state_dicts, ["ent_coef_tensor"]
+
+
+def _check_ent_coef(ent_coef: str | float) -> str | float:
+    """Raise ``ValueError`` unless ``ent_coef`` is a number > 0, ``"auto"`` or ``"auto_<number > 0>"``."""
+    if not isinstance(ent_coef, str):
+        return check_range("ent_coef", ent_coef, 0.0, None, low_inclusive=False)
+    valid = ent_coef == "auto"
+    if ent_coef.startswith("auto_"):
+        try:
+            valid = float(ent_coef[len("auto_") :]) > 0
+        except ValueError:
+            valid = False
+    if not valid:
+        raise ValueError(f"ent_coef={ent_coef!r} is invalid: expected a number > 0, 'auto' or 'auto_<initial value > 0>'")
+    return ent_coef
+
+
+def _check_sac_hyperparameters(
+    learning_rate: float | Schedule,
+    buffer_size: int,
+    learning_starts: int,
+    batch_size: int,
+    tau: float,
+    gamma: float,
+    gradient_steps: int,
+) -> dict[str, Any]:
+    """
+    Raise ``ValueError`` for a SAC hyperparameter outside its range, naming it, its value and the range.
+
+    :return: the hyperparameters by name, numbers as Python ``int`` and ``float`` (numpy scalars and integral floats
+        such as ``learning_starts=1e4`` are accepted, as SB3 accepts them)
+    """
+    return dict(
+        learning_rate=learning_rate
+        if callable(learning_rate)
+        else check_range("learning_rate", learning_rate, 0.0, None, low_inclusive=False),
+        buffer_size=check_int("buffer_size", buffer_size, 1),
+        learning_starts=check_int("learning_starts", learning_starts, 0),
+        batch_size=check_int("batch_size", batch_size, 1),
+        tau=check_range("tau", tau, 0.0, 1.0),
+        gamma=check_range("gamma", gamma, 0.0, 1.0),
+        gradient_steps=-1 if gradient_steps == -1 else check_int("gradient_steps", gradient_steps, 0),
+    )
