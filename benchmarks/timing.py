@@ -7,18 +7,27 @@ import numpy as np
 from stable_baselines3.common.base_class import BaseAlgorithm
 
 
-def time_block(model: BaseAlgorithm, mode: str, block_steps: int, batch_size: int) -> float:
-    """Gradient steps per second of one block: ``train`` (gradient steps only) or ``learn`` (env steps too)."""
+def time_block(model: BaseAlgorithm, mode: str, block_steps: int, batch_size: int | None) -> float:
+    """
+    Gradient steps per second of one block: ``train`` (gradient steps only, at ``batch_size``, or the model's own
+    when None) or ``learn`` (env steps too).
+    """
     start = time.perf_counter()
     if mode == "train":
-        model.train(gradient_steps=block_steps, batch_size=batch_size)  # type: ignore[attr-defined]
+        size = model.batch_size if batch_size is None else batch_size  # type: ignore[attr-defined]
+        model.train(gradient_steps=block_steps, batch_size=size)  # type: ignore[attr-defined]
     else:
         model.learn(block_steps, reset_num_timesteps=False)
     return block_steps / (time.perf_counter() - start)
 
 
 def interleaved_rates(
-    models: Mapping[str, BaseAlgorithm], mode: str, blocks: int, block_steps: int, batch_size: int, warmup_blocks: int = 2
+    models: Mapping[str, BaseAlgorithm],
+    mode: str,
+    blocks: int,
+    block_steps: int,
+    batch_size: int | None,
+    warmup_blocks: int = 2,
 ) -> dict[str, list[float]]:
     """
     Rates of each model over ``blocks`` timed blocks, the models taking turns (in alternating order) so that

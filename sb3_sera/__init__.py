@@ -5,6 +5,7 @@ from sb3_sera.sera import SERASAC  # noqa: I001
 from sb3_sera.ctde import CTDEEnv, register_tasks
 from sb3_sera.ctde.algorithms import MADDPG, MAPPO, MASAC, MATD3
 from sb3_sera.sunrise import SUNRISE
+from sb3_sera.ace import ACE
 
 __version__ = "0.1.0"
 
@@ -12,4 +13,4 @@ __version__ = "0.1.0"
 # `--gym-packages sb3_sera`) makes them available
 register_tasks()
 
-__all__ = ["MADDPG", "MAPPO", "MASAC", "MATD3", "SERASAC", "SUNRISE", "CTDEEnv", "__version__", "register_tasks"]
+__all__ = ["ACE", "MADDPG", "MAPPO", "MASAC", "MATD3", "SERASAC", "SUNRISE", "CTDEEnv", "__version__", "register_tasks"]

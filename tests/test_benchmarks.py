@@ -16,6 +16,11 @@ TINY_TIMING = ["--blocks", "1", "--block-steps", "2", "--threads", "1"]
         ("train_speed.py", ["--env", "Pendulum-v1", "--warmup-blocks", "0", *TINY_TIMING], "SERASAC"),
         ("scaling.py", ["--learning-starts", "10", *TINY_TIMING], "fit t ="),
         ("flops.py", ["--env", "Pendulum-v1", "--steps", "2", "--learning-starts", "100", "--threads", "1"], "matmul work"),
+        (
+            "baselines_speed.py",
+            ["--env", "Pendulum-v1", "--learning-starts", "20", "--warmup-blocks", "0", *TINY_TIMING],
+            "ACE",
+        ),
         ("memory.py", ["--env", "Pendulum-v1", "--buffer-size", "1000", "--gradient-steps", "2"], "SERASAC"),
     ],
 )

@@ -13,6 +13,7 @@ from typing import Any
 
 from stable_baselines3.common.base_class import BaseAlgorithm
 
+from sb3_sera.ace import ACE
 from sb3_sera.common.callbacks import InitialStateBiasCallback
 from sb3_sera.ctde.algorithms import MADDPG, MAPPO, MASAC, MATD3
 from sb3_sera.sera import SERASAC
@@ -26,6 +27,7 @@ ZOO_ALGOS: dict[str, type[BaseAlgorithm]] = {
     "maddpg": MADDPG,
     "mappo": MAPPO,
     "sunrise": SUNRISE,
+    "ace": ACE,
 }
 #: The multi-agent algorithms tune in the search space of the SB3 algorithm they are built on
 ZOO_BASE_ALGOS = {"masac": "sac", "matd3": "td3", "maddpg": "ddpg", "mappo": "ppo"}
@@ -37,7 +39,9 @@ ZOO_COMMANDS = ("train", "enjoy", "record-video", "optimize")
 PLAYBACK_COMMANDS = ("enjoy", "record-video")
 #: The package's off-policy algorithms (rl-zoo3's ``off_policy_algos``, which its enjoy and record-video load with a
 #: one-transition replay buffer; that list is local to those commands, so :func:`playback_algos` does it for ours)
-ZOO_OFF_POLICY_ALGOS = ("serasac", "masac", "matd3", "maddpg")
+ZOO_OFF_POLICY_ALGOS = ("serasac", "masac", "matd3", "maddpg", "sunrise", "ace")
+#: The single-agent baselines (no CTDE tasks)
+SINGLE_AGENT_ALGOS = ("sunrise", "ace")
 
 
 def _actor_only(hyperparams: dict[str, Any]) -> dict[str, Any]:
@@ -102,6 +106,25 @@ def playback_algos() -> dict[str, type[BaseAlgorithm]]:
     return {name: _with_small_buffer(algo) if name in ZOO_OFF_POLICY_ALGOS else algo for name, algo in ZOO_ALGOS.items()}
 
 
+def sample_ace_params(trial: Any, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
+    """ACE's own search space: the optimizer and target settings, the exploration noise, the heads and the tree."""
+    return {
+        "learning_rate": trial.suggest_float("learning_rate", 3e-5, 1e-3, log=True),
+        "batch_size": trial.suggest_categorical("batch_size", [64, 128, 256]),
+        "tau": trial.suggest_categorical("tau", [0.001, 0.005, 0.01]),
+        "gamma": trial.suggest_categorical("gamma", [0.98, 0.99, 0.995]),
+        "exploration_noise": trial.suggest_float("exploration_noise", 0.1, 0.5),
+        "policy_kwargs": {"n_actors": trial.suggest_int("n_actors", 1, 8), "depth": trial.suggest_int("depth", 1, 3)},
+    }
+
+
+def convert_ace_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
+    """ACE's stored trial as its hyperparameters: the heads and depth back into ``policy_kwargs``."""
+    params = dict(sampled_params)
+    params["policy_kwargs"] = {"n_actors": params.pop("n_actors"), "depth": params.pop("depth")}
+    return params
+
+
 def register_with_zoo(command: str = "train") -> None:
     """
     Add the package's algorithms, samplers and converters to rl-zoo3's tables, and make its evaluations also record
@@ -117,6 +140,7 @@ def register_with_zoo(command: str = "train") -> None:
     samplers, converters = hyperparams_opt.HYPERPARAMS_SAMPLER, hyperparams_opt.HYPERPARAMS_CONVERTER
     samplers["serasac"], converters["serasac"] = sample_serasac_params, convert_serasac_params
     samplers["sunrise"], converters["sunrise"] = sample_sunrise_params, hyperparams_opt.convert_offpolicy_params
+    samplers["ace"], converters["ace"] = sample_ace_params, convert_ace_params
     for algo, base in ZOO_BASE_ALGOS.items():
         samplers[algo], converters[algo] = samplers[base], converters[base]
 
