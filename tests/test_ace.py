@@ -122,6 +122,20 @@ def test_determinism_and_multi_env():
     assert multi.num_timesteps == 60 and multi.replay_buffer.size() == 30
 
 
+def test_float64_observations_train():
+    # MuJoCo tasks give float64 observations, which the replay buffer keeps
+    model = ACE(
+        "MlpPolicy",
+        "InvertedPendulum-v5",
+        learning_starts=20,
+        batch_size=8,
+        seed=0,
+        policy_kwargs=dict(feature_dim=16, hidden=8),
+    )
+    model.learn(40)
+    assert model.replay_buffer.observations.dtype == np.float64 and model._n_updates == 20
+
+
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [

@@ -113,6 +113,8 @@ class ACENetwork(nn.Module):
 
     def phi(self, observations: th.Tensor) -> th.Tensor:
         """The state feature of (raw) observations ``(S, obs_dim)``."""
+        # MuJoCo's observations (and so the replay buffer's) are float64: the networks are float32
+        observations = observations.float()
         if self.normalizer is not None:
             observations = self.normalizer(observations)
         return self.features(observations)
