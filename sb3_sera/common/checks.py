@@ -8,7 +8,7 @@ each returns the value as a plain Python ``float`` or ``int``.
 
 import math
 import numbers
-from collections.abc import Collection
+from collections.abc import Callable, Collection
 from typing import Any
 
 import numpy as np
@@ -85,3 +85,46 @@ def check_choice(name: str, value: Any, choices: Collection[Any]) -> None:
 def _is_real(value: Any) -> bool:
     """Whether ``value`` is a real number (Python or numpy), booleans excluded."""
     return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
+
+
+def check_ent_coef(ent_coef: str | float) -> str | float:
+    """Raise ``ValueError`` unless ``ent_coef`` is a number > 0, ``"auto"`` or ``"auto_<number > 0>"``."""
+    if not isinstance(ent_coef, str):
+        return check_range("ent_coef", ent_coef, 0.0, None, low_inclusive=False)
+    valid = ent_coef == "auto"
+    if ent_coef.startswith("auto_"):
+        try:
+            valid = float(ent_coef[len("auto_") :]) > 0
+        except ValueError:
+            valid = False
+    if not valid:
+        raise ValueError(f"ent_coef={ent_coef!r} is invalid: expected a number > 0, 'auto' or 'auto_<initial value > 0>'")
+    return ent_coef
+
+
+def check_off_policy_hyperparameters(
+    learning_rate: float | Callable[[float], float],
+    buffer_size: int,
+    learning_starts: int,
+    batch_size: int,
+    tau: float,
+    gamma: float,
+    gradient_steps: int,
+) -> dict[str, Any]:
+    """
+    Raise ``ValueError`` for one of SB3's off-policy hyperparameters outside its range, naming it, its value and the
+    range.
+
+    :return: the hyperparameters by name, numbers as Python ``int`` and ``float``
+    """
+    return dict(
+        learning_rate=learning_rate
+        if callable(learning_rate)
+        else check_range("learning_rate", learning_rate, 0.0, None, low_inclusive=False),
+        buffer_size=check_int("buffer_size", buffer_size, 1),
+        learning_starts=check_int("learning_starts", learning_starts, 0),
+        batch_size=check_int("batch_size", batch_size, 1),
+        tau=check_range("tau", tau, 0.0, 1.0),
+        gamma=check_range("gamma", gamma, 0.0, 1.0),
+        gradient_steps=-1 if gradient_steps == -1 else check_int("gradient_steps", gradient_steps, 0),
+    )

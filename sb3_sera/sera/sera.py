@@ -12,7 +12,7 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, PyTorch
 from stable_baselines3.common.utils import FloatSchedule, polyak_update
 from stable_baselines3.sac import SAC
 
-from sb3_sera.common.checks import check_choice, check_int, check_range
+from sb3_sera.common.checks import check_choice, check_ent_coef, check_int, check_off_policy_hyperparameters, check_range
 from sb3_sera.ctde.policies import SERACTDEPolicy, fill_agent_layout, make_env_for_policy
 from sb3_sera.sera.aggregation import (
     ACTOR_AGGREGATIONS,
@@ -597,29 +597,11 @@ def _check_sac_hyperparameters(
     :return: the hyperparameters by name, numbers as Python ``int`` and ``float`` (numpy scalars and integral floats
         such as ``learning_starts=1e4`` are accepted, as SB3 accepts them)
     """
-    checked: dict[str, Any] = dict(
-        learning_rate=learning_rate
-        if callable(learning_rate)
-        else check_range("learning_rate", learning_rate, 0.0, None, low_inclusive=False),
-        buffer_size=check_int("buffer_size", buffer_size, 1),
-        learning_starts=check_int("learning_starts", learning_starts, 0),
-        batch_size=check_int("batch_size", batch_size, 1),
-        tau=check_range("tau", tau, 0.0, 1.0),
-        gamma=check_range("gamma", gamma, 0.0, 1.0),
-        gradient_steps=-1 if gradient_steps == -1 else check_int("gradient_steps", gradient_steps, 0),
-        n_steps=check_int("n_steps", n_steps, 1),
-        target_update_interval=check_int("target_update_interval", target_update_interval, 1),
-        ent_coef=ent_coef,
-    )
-    if isinstance(ent_coef, str):
-        valid = ent_coef == "auto"
-        if ent_coef.startswith("auto_"):
-            try:
-                valid = float(ent_coef[len("auto_") :]) > 0
-            except ValueError:
-                valid = False
-        if not valid:
-            raise ValueError(f"ent_coef={ent_coef!r} is invalid: expected a number > 0, 'auto' or 'auto_<initial value > 0>'")
-    else:
-        checked["ent_coef"] = check_range("ent_coef", ent_coef, 0.0, None, low_inclusive=False)
-    return checked
+    return {
+        **check_off_policy_hyperparameters(
+            learning_rate, buffer_size, learning_starts, batch_size, tau, gamma, gradient_steps
+        ),
+        "n_steps": check_int("n_steps", n_steps, 1),
+        "target_update_interval": check_int("target_update_interval", target_update_interval, 1),
+        "ent_coef": check_ent_coef(ent_coef),
+    }

@@ -13,7 +13,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.utils import polyak_update
 
-from sb3_sera.common.checks import check_int, check_range
+from sb3_sera.common.checks import check_ent_coef, check_int, check_off_policy_hyperparameters, check_range
 from sb3_sera.sunrise.buffers import SUNRISEReplayBuffer, SUNRISEReplayBufferSamples
 from sb3_sera.sunrise.ensemble import backup_weight, ensemble_std, masked_mean, weighted_bellman_loss
 from sb3_sera.sunrise.policies import (
@@ -146,7 +146,7 @@ class SUNRISE(OffPolicyAlgorithm):
         super().__init__(
             policy,
             env,
-            **_check_sac_hyperparameters(
+            **check_off_policy_hyperparameters(
                 learning_rate=learning_rate,
                 buffer_size=buffer_size,
                 learning_starts=learning_starts,
@@ -171,7 +171,7 @@ class SUNRISE(OffPolicyAlgorithm):
             support_multi_env=True,
         )
         self.target_update_interval = check_int("target_update_interval", target_update_interval, 1)
-        self.ent_coef = _check_ent_coef(ent_coef)
+        self.ent_coef = check_ent_coef(ent_coef)
         self.target_entropy = target_entropy
         self.log_ent_coef: th.Tensor | None = None
         self.ent_coef_optimizer: th.optim.Adam | None = None
@@ -372,46 +372,3 @@ class SUNRISE(OffPolicyAlgorithm):
         if self.ent_coef_optimizer is not None:
             return [*state_dicts, "ent_coef_optimizer"], ["log_ent_coef"]
         return state_dicts, ["ent_coef_tensor"]
-
-
-def _check_ent_coef(ent_coef: str | float) -> str | float:
-    """Raise ``ValueError`` unless ``ent_coef`` is a number > 0, ``"auto"`` or ``"auto_<number > 0>"``."""
-    if not isinstance(ent_coef, str):
-        return check_range("ent_coef", ent_coef, 0.0, None, low_inclusive=False)
-    valid = ent_coef == "auto"
-    if ent_coef.startswith("auto_"):
-        try:
-            valid = float(ent_coef[len("auto_") :]) > 0
-        except ValueError:
-            valid = False
-    if not valid:
-        raise ValueError(f"ent_coef={ent_coef!r} is invalid: expected a number > 0, 'auto' or 'auto_<initial value > 0>'")
-    return ent_coef
-
-
-def _check_sac_hyperparameters(
-    learning_rate: float | Schedule,
-    buffer_size: int,
-    learning_starts: int,
-    batch_size: int,
-    tau: float,
-    gamma: float,
-    gradient_steps: int,
-) -> dict[str, Any]:
-    """
-    Raise ``ValueError`` for a SAC hyperparameter outside its range, naming it, its value and the range.
-
-    :return: the hyperparameters by name, numbers as Python ``int`` and ``float`` (numpy scalars and integral floats
-        such as ``learning_starts=1e4`` are accepted, as SB3 accepts them)
-    """
-    return dict(
-        learning_rate=learning_rate
-        if callable(learning_rate)
-        else check_range("learning_rate", learning_rate, 0.0, None, low_inclusive=False),
-        buffer_size=check_int("buffer_size", buffer_size, 1),
-        learning_starts=check_int("learning_starts", learning_starts, 0),
-        batch_size=check_int("batch_size", batch_size, 1),
-        tau=check_range("tau", tau, 0.0, 1.0),
-        gamma=check_range("gamma", gamma, 0.0, 1.0),
-        gradient_steps=-1 if gradient_steps == -1 else check_int("gradient_steps", gradient_steps, 0),
-    )
