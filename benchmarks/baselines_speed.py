@@ -1,14 +1,17 @@
 """
-Gradient steps per second of the paper's single-agent baselines (SUNRISE, ACE) and SERASAC against stock SB3 SAC,
-interleaved in one process.
+Gradient steps per second of the paper's baselines and SERASAC against stock SB3, interleaved in one process: on a
+single-agent task SAC, SERASAC, SUNRISE and ACE against SAC; on a multi-agent CTDE task (``sb3_sera/...``) MASAC,
+SERASAC and IET (our adaptation) against MASAC (SB3's SAC with per-agent actors).
 
 Every model is built with its own defaults on the same task (so each runs at its own default batch size: SAC,
-SERASAC and SUNRISE 256, ACE 64, the authors'), its replay buffer filled with ``--learning-starts`` random
-transitions, then ``model.train(block)`` is timed in alternating blocks so that machine noise hits all alike. Each
-figure is the median over blocks with the interquartile range; the ratio is SAC's median rate over the model's
-(its wall-time cost per gradient step, in units of SAC's). ``--batch-size`` times every model at one batch size.
+MASAC, SERASAC, SUNRISE and IET 256, ACE 64, the authors'), its replay buffer filled with ``--learning-starts``
+random transitions, then ``model.train(block)`` is timed in alternating blocks so that machine noise hits all alike.
+Each figure is the median over blocks with the interquartile range; the ratio is the reference's median rate over
+the model's (its wall-time cost per gradient step, in units of the reference's). ``--batch-size`` times every model
+at one batch size.
 
     python benchmarks/baselines_speed.py --env HalfCheetah-v5 --blocks 10 --block-steps 50
+    python benchmarks/baselines_speed.py --env sb3_sera/HalfCheetah-6x1-v0 --blocks 10 --block-steps 50
 """
 
 import argparse
@@ -19,17 +22,27 @@ from stable_baselines3 import SAC
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from timing import interleaved_rates, median_iqr
 
-from sb3_sera import SERASAC
-from sb3_sera.ace import ACE
-from sb3_sera.sunrise import SUNRISE
+from sb3_sera import ACE, IET, MASAC, SERASAC, SUNRISE
 
-ALGORITHMS: dict[str, Callable[..., OffPolicyAlgorithm]] = {"SAC": SAC, "SERASAC": SERASAC, "SUNRISE": SUNRISE, "ACE": ACE}
+ALGORITHMS: dict[str, Callable[..., OffPolicyAlgorithm]] = {
+    "SAC": SAC,
+    "MASAC": MASAC,
+    "SERASAC": SERASAC,
+    "SUNRISE": SUNRISE,
+    "ACE": ACE,
+    "IET": IET,
+}
+#: The algorithms each kind of task runs by default, the reference first
+SINGLE_AGENT = ["SAC", "SERASAC", "SUNRISE", "ACE"]
+MULTI_AGENT = ["MASAC", "SERASAC", "IET"]
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="HalfCheetah-v5")
-    parser.add_argument("--algos", nargs="+", default=list(ALGORITHMS), choices=list(ALGORITHMS))
+    parser.add_argument(
+        "--algos", nargs="+", choices=list(ALGORITHMS), help=f"default: {SINGLE_AGENT}, or {MULTI_AGENT} on a CTDE task"
+    )
     parser.add_argument("--blocks", type=int, default=10, help="timed blocks per algorithm")
     parser.add_argument("--block-steps", type=int, default=50, help="gradient steps per block")
     parser.add_argument("--warmup-blocks", type=int, default=2, help="untimed blocks first")
@@ -40,19 +53,23 @@ def main() -> None:
     args = parser.parse_args()
 
     th.set_num_threads(args.threads)
-    names = ["SAC", *(name for name in args.algos if name != "SAC")]
+    # The package's multi-agent tasks are its sb3_sera/ ids
+    policy = "CTDEPolicy" if args.env.startswith("sb3_sera/") else "MlpPolicy"
+    defaults = MULTI_AGENT if policy == "CTDEPolicy" else SINGLE_AGENT
+    reference = defaults[0]
+    names = [reference, *(name for name in args.algos or defaults if name != reference)]
     models: dict[str, OffPolicyAlgorithm] = {}
     for name in names:
-        model = ALGORITHMS[name]("MlpPolicy", args.env, seed=args.seed, learning_starts=args.learning_starts)
+        model = ALGORITHMS[name](policy, args.env, seed=args.seed, learning_starts=args.learning_starts)
         model.learn(args.learning_starts)  # fills the buffer; no gradient step before learning_starts
         models[name] = model
     print(f"{args.env}, {args.threads} torch thread(s), torch {th.__version__}, train() only")
-    print(f"{'algorithm':<10} {'batch':>6} {'steps/s (median)':>17} {'IQR':>15}  ratio (SAC rate / rate)")
+    print(f"{'algorithm':<10} {'batch':>6} {'steps/s (median)':>17} {'IQR':>15}  ratio ({reference} rate / rate)")
     rates = interleaved_rates(models, "train", args.blocks, args.block_steps, args.batch_size, args.warmup_blocks)
     stats = {name: median_iqr(values) for name, values in rates.items()}
     for name, (median, low, high) in stats.items():
         batch = args.batch_size or models[name].batch_size
-        print(f"{name:<10} {batch:>6} {median:>17.1f} {f'{low:.1f}-{high:.1f}':>15}  {stats['SAC'][0] / median:.2f}x")
+        print(f"{name:<10} {batch:>6} {median:>17.1f} {f'{low:.1f}-{high:.1f}':>15}  {stats[reference][0] / median:.2f}x")
 
 
 if __name__ == "__main__":

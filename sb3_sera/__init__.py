@@ -6,6 +6,7 @@ from sb3_sera.ctde import CTDEEnv, register_tasks
 from sb3_sera.ctde.algorithms import MADDPG, MAPPO, MASAC, MATD3
 from sb3_sera.sunrise import SUNRISE
 from sb3_sera.ace import ACE
+from sb3_sera.iet import IET
 
 __version__ = "0.1.0"
 
@@ -13,4 +14,4 @@ __version__ = "0.1.0"
 # `--gym-packages sb3_sera`) makes them available
 register_tasks()
 
-__all__ = ["ACE", "MADDPG", "MAPPO", "MASAC", "MATD3", "SERASAC", "SUNRISE", "CTDEEnv", "__version__", "register_tasks"]
+__all__ = ["ACE", "IET", "MADDPG", "MAPPO", "MASAC", "MATD3", "SERASAC", "SUNRISE", "CTDEEnv", "__version__", "register_tasks"]

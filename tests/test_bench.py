@@ -1,9 +1,14 @@
 """`sb3-sera bench`: grid checks before any run, local runs that resume, and a local Ray instance."""
 
+from pathlib import Path
+
 import pytest
 
 from sb3_sera.experiments import bench
 from sb3_sera.experiments.cli import main
+from sb3_sera.experiments.report import PAPER_NAMES, PAPER_RESULTS
+
+GRIDS = Path(__file__).resolve().parents[1] / "benchmarks" / "grids"
 
 GRID = """
 algorithms:
@@ -39,6 +44,24 @@ def test_bad_grids_are_refused_before_any_run(tmp_path, replace, message):
     with pytest.raises(ValueError, match=message):
         bench.run_grid(path, str(tmp_path / "out"))
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("path", sorted(GRIDS.glob("*.yml")), ids=lambda path: path.name)
+def test_shipped_grids_are_valid(path):
+    specs = bench.load_grid(path)
+    assert specs and all(spec.n_timesteps > 0 for spec in specs)
+
+
+@pytest.mark.parametrize("table", ["paper_table1", "paper_table2"])
+def test_paper_table_grids_run_every_column_on_every_task(table):
+    specs = bench.load_grid(GRIDS / f"{table}.yml")
+    tasks = {spec.env_id for spec in specs}
+    for task in tasks:
+        columns = {PAPER_NAMES[spec.variant] for spec in specs if spec.env_id == task}
+        assert columns == set(PAPER_RESULTS[task]), task
+    assert {spec.n_timesteps for spec in specs} == {300_000} and {spec.seed for spec in specs} == set(range(5))
+    # Table 1: the multi-agent tasks; Table 2: the single-agent ones
+    assert tasks == {task for task in PAPER_RESULTS if task.startswith("sb3_sera/") == (table == "paper_table1")}
 
 
 def test_grid_runs_and_resumes(tmp_path, capsys):

@@ -21,6 +21,11 @@ TINY_TIMING = ["--blocks", "1", "--block-steps", "2", "--threads", "1"]
             ["--env", "Pendulum-v1", "--learning-starts", "20", "--warmup-blocks", "0", *TINY_TIMING],
             "ACE",
         ),
+        (
+            "baselines_speed.py",
+            ["--env", "sb3_sera/SimpleSpread-v0", "--learning-starts", "20", "--warmup-blocks", "0", *TINY_TIMING],
+            "IET",
+        ),
         ("memory.py", ["--env", "Pendulum-v1", "--buffer-size", "1000", "--gradient-steps", "2"], "SERASAC"),
     ],
 )

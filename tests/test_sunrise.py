@@ -1,9 +1,6 @@
 """SUNRISE as an SB3 algorithm: its math on hand values, batched equals looped, acting, save/load, zoo, errors."""
 
 import math
-import os
-import subprocess
-import sys
 
 import gymnasium as gym
 import numpy as np
@@ -18,10 +15,11 @@ from stable_baselines3.common.evaluation import evaluate_policy
 from torch import nn
 
 from sb3_sera import SUNRISE
+from sb3_sera.common.layers import BatchedLinear
 from sb3_sera.experiments.zoo import HYPERPARAMS_DIR, ZOO_ALGOS, register_with_zoo
 from sb3_sera.sunrise.buffers import SUNRISEReplayBufferSamples, bootstrap_masks
 from sb3_sera.sunrise.ensemble import backup_weight, ensemble_std, masked_mean, ucb_choice, weighted_bellman_loss
-from sb3_sera.sunrise.policies import BatchedLinear, SUNRISEPolicy
+from sb3_sera.sunrise.policies import SUNRISEPolicy
 
 ENV_ID = "Pendulum-v1"
 SMALL = dict(learning_starts=50, batch_size=32, buffer_size=2_000)
@@ -458,17 +456,8 @@ def test_zoo_registration_sampler_and_hyperparameter_file():
         SUNRISE(entry["policy"], ENV_ID, **{**kwargs, "buffer_size": 100})
 
 
-def test_zoo_train_with_evaluations_then_enjoy(tmp_path):
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+def test_zoo_train_with_evaluations_then_enjoy(tmp_path, sb3_sera):
     folder = str(tmp_path)
-
-    def sb3_sera(*args: str) -> subprocess.CompletedProcess:
-        completed = subprocess.run(
-            [sys.executable, "-m", "sb3_sera", *args], capture_output=True, text=True, timeout=600, env=env
-        )
-        assert completed.returncode == 0, completed.stderr[-3000:]
-        return completed
-
     common = ["--algo", "sunrise", "--env", ENV_ID, "-f", folder, "--num-threads", "1"]
     sb3_sera("train", *common, "-n", "300", "--seed", "0", "--eval-freq", "100", "--eval-episodes", "1")
     run = tmp_path / "sunrise" / "Pendulum-v1_1"

@@ -17,6 +17,7 @@ from stable_baselines3.common.policies import ActorCriticPolicy
 from stable_baselines3.sac import SAC
 from torch import nn
 
+from sb3_sera.iet.latents import LATENT_KEY
 from sb3_sera.sera import SERASAC
 from sb3_sera.sera.aggregation import correlation_matrix, mean_off_diagonal
 
@@ -93,6 +94,10 @@ class InitialStateBiasCallback(EvalCallback):
             observations = locals_["observations"]
             if isinstance(observations, dict):
                 observation: Any = {key: value[env_index] for key, value in observations.items()}
+                states = locals_["states"]
+                if LATENT_KEY in self.model.observation_space.spaces and LATENT_KEY not in observation:  # type: ignore[attr-defined]
+                    # IET on an env without its latents: they are the policy's state (IETPolicy.predict)
+                    observation[LATENT_KEY] = states[0][env_index]
             else:
                 observation = observations[env_index]
             self._running[env_index] = (self._initial_value(observation, locals_["actions"][env_index]), 0.0)

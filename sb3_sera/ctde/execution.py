@@ -3,7 +3,7 @@ Decentralized execution: per-agent controllers taken from a trained CTDE model (
 
 Each controller reads only its own agent's observation (as the PettingZoo env gives it) and returns that agent's
 action within its own bounds; the critics are not part of them, nor of what :meth:`DecentralizedActors.save`
-writes.
+writes. An IET controller also reads its agent's latent, drawn at each :meth:`DecentralizedActors.reset`.
 """
 
 import copy
@@ -21,8 +21,15 @@ from stable_baselines3.sac.policies import Actor as SACActor
 from stable_baselines3.td3.policies import Actor as TD3Actor
 
 from sb3_sera.ctde.policies import CTDEActor, GaussianAgentActor, MAPPOPolicy
+from sb3_sera.iet.policies import IETAgentActor
 
-_ACTOR_CLASSES: dict[str, type[BasePolicy]] = {"sac": SACActor, "td3": TD3Actor, "ppo": GaussianAgentActor}
+# Most specific first: an IET actor is a SAC actor
+_ACTOR_CLASSES: dict[str, type[BasePolicy]] = {
+    "iet": IETAgentActor,
+    "sac": SACActor,
+    "td3": TD3Actor,
+    "ppo": GaussianAgentActor,
+}
 
 
 def _agent_action_dims(policy: BasePolicy) -> dict[str, int]:
@@ -42,13 +49,32 @@ class DecentralizedActors:
     :param actors: each agent's actor network: SB3's SAC or TD3 actor (squashed outputs in [-1, 1], rescaled to the
         agent's action space) or MAPPO's :class:`~sb3_sera.ctde.policies.GaussianAgentActor` (clipped to it)
     :param action_spaces: each agent's own action space
+    :param seed: seed of the IET actors' latents (:meth:`reset`)
+
+    IET's actors (:class:`~sb3_sera.iet.policies.IETAgentActor`) also read their agent's latent, drawn from
+    ``N(0, I)`` when the controllers are made and at each :meth:`reset`: call it at the start of every episode, as
+    IET was trained. The other actors have no latent and :meth:`reset` leaves them as they are.
     """
 
-    def __init__(self, actors: Mapping[str, BasePolicy], action_spaces: Mapping[str, spaces.Box]):
+    def __init__(self, actors: Mapping[str, BasePolicy], action_spaces: Mapping[str, spaces.Box], seed: int | None = None):
         self.actors = dict(actors)
         self.action_spaces = dict(action_spaces)
         for actor in self.actors.values():
             actor.set_training_mode(False)
+        self.rng = np.random.default_rng(seed)
+        #: The current latent of each agent whose actor reads one (IET)
+        self.latents: dict[str, np.ndarray] = {}
+        self.reset()
+
+    def reset(self, seed: int | None = None) -> None:
+        """Start an episode: each IET actor's agent draws a new latent (``seed``: reseed the latents first)."""
+        if seed is not None:
+            self.rng = np.random.default_rng(seed)
+        self.latents = {
+            agent: self.rng.standard_normal(actor.latent_dim, dtype=np.float32)
+            for agent, actor in self.actors.items()
+            if isinstance(actor, IETAgentActor)
+        }
 
     @classmethod
     def from_model(cls, model: BaseAlgorithm) -> "DecentralizedActors":
@@ -77,7 +103,10 @@ class DecentralizedActors:
         """The action of ``agent`` for its observation ``observation``, within its action space."""
         actor, space = self.actors[agent], self.action_spaces[agent]
         with th.no_grad():
-            obs = th.as_tensor(np.asarray(observation, dtype=np.float32)).reshape(1, -1)
+            own = np.asarray(observation, dtype=np.float32).reshape(-1)
+            if agent in self.latents:
+                own = np.concatenate([own, self.latents[agent]])
+            obs = th.as_tensor(own).reshape(1, -1)
             action = actor._predict(obs, deterministic=deterministic).cpu().numpy().reshape(space.shape)
         if actor.squash_output:
             return (space.low + 0.5 * (action + 1.0) * (space.high - space.low)).astype(space.dtype)

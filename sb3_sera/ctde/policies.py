@@ -180,11 +180,10 @@ class CTDEActor(BaseModel):
         self.agents = list(agent_action_dims)
         self.agent_action_dims = dict(agent_action_dims)
         self.share_parameters = share_parameters
-        boxes = {agent: observation_space[agent] for agent in self.agents}
         _check_shareable(observation_space, agent_action_dims, share_parameters)
         actors: dict[str, nn.Module] = {}
         for agent in self.agents[:1] if share_parameters else self.agents:
-            box = boxes[agent]
+            box = self.agent_input_space(observation_space, agent)
             actors[agent] = agent_actor_class(
                 **{
                     **agent_actor_kwargs,
@@ -196,6 +195,14 @@ class CTDEActor(BaseModel):
             )
         self.agent_actors = nn.ModuleDict(actors)
 
+    def agent_input_space(self, observation_space: spaces.Dict, agent: str) -> spaces.Box:
+        """What ``agent``'s actor reads: its own observation."""
+        return cast(spaces.Box, observation_space[agent])
+
+    def agent_input(self, obs: dict[str, th.Tensor], agent: str) -> th.Tensor:
+        """``agent``'s part of a batch of CTDE observations, as its actor reads it (see :meth:`agent_input_space`)."""
+        return obs[agent]
+
     def agent_actor(self, agent: str) -> nn.Module:
         """The network that acts for ``agent``."""
         return self.agent_actors[self.agents[0] if self.share_parameters else agent]
@@ -203,8 +210,10 @@ class CTDEActor(BaseModel):
     def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         assert isinstance(obs, dict)
         if self.agent_actor_is_stochastic:
-            return th.cat([self.agent_actor(agent)(obs[agent], deterministic) for agent in self.agents], dim=1)
-        return th.cat([self.agent_actor(agent)(obs[agent]) for agent in self.agents], dim=1)
+            return th.cat(
+                [self.agent_actor(agent)(self.agent_input(obs, agent), deterministic) for agent in self.agents], dim=1
+            )
+        return th.cat([self.agent_actor(agent)(self.agent_input(obs, agent)) for agent in self.agents], dim=1)
 
     @property
     def agent_actor_is_stochastic(self) -> bool:
@@ -213,7 +222,9 @@ class CTDEActor(BaseModel):
     def action_log_prob(self, obs: PyTorchObs) -> tuple[th.Tensor, th.Tensor]:
         """Joint action and ``log pi(a|o) = sum_m log pi_m(a_m|o_m)`` (SAC family)."""
         assert isinstance(obs, dict)
-        pairs = [cast(SACActor, self.agent_actor(agent)).action_log_prob(obs[agent]) for agent in self.agents]
+        pairs = [
+            cast(SACActor, self.agent_actor(agent)).action_log_prob(self.agent_input(obs, agent)) for agent in self.agents
+        ]
         actions, log_probs = zip(*pairs, strict=True)
         return th.cat(actions, dim=1), th.stack(log_probs, dim=0).sum(dim=0)
 
@@ -228,6 +239,9 @@ class _CTDEMixin:
     """
 
     agent_actor_class: type[BasePolicy]
+    #: The per-agent actors' container, and the centralized critics' features
+    ctde_actor_class: type[CTDEActor] = CTDEActor
+    critic_features_class: type[BaseFeaturesExtractor] = StateExtractor
     actor_kwargs: dict[str, Any]
     observation_space: spaces.Dict
     action_space: spaces.Box
@@ -247,19 +261,22 @@ class _CTDEMixin:
             raise ValueError(
                 "share_features_extractor=True is not possible: the actors read local observations, the critics the state"
             )
-        kwargs.setdefault("features_extractor_class", StateExtractor)
+        kwargs.setdefault("features_extractor_class", self.critic_features_class)
         self.agent_action_dims = agent_action_dims
         self.share_actor = share_actor
         super().__init__(observation_space, action_space, lr_schedule, **kwargs)  # type: ignore[call-arg]
 
+    def agent_actor_kwargs(self) -> dict[str, Any]:
+        """Keyword arguments of each agent's actor, but for the spaces and the features extractor."""
+        return {k: v for k, v in self.actor_kwargs.items() if k not in ("observation_space", "action_space")}
+
     def make_actor(self, features_extractor: BaseFeaturesExtractor | None = None) -> CTDEActor:
-        agent_kwargs = {k: v for k, v in self.actor_kwargs.items() if k not in ("observation_space", "action_space")}
-        return CTDEActor(
+        return self.ctde_actor_class(
             self.observation_space,
             self.action_space,
             self.agent_action_dims,
             self.agent_actor_class,
-            agent_kwargs,
+            self.agent_actor_kwargs(),
             share_parameters=self.share_actor,
         ).to(self.device)
 

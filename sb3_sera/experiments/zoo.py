@@ -16,6 +16,7 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from sb3_sera.ace import ACE
 from sb3_sera.common.callbacks import InitialStateBiasCallback
 from sb3_sera.ctde.algorithms import MADDPG, MAPPO, MASAC, MATD3
+from sb3_sera.iet import IET
 from sb3_sera.sera import SERASAC
 from sb3_sera.sunrise import SUNRISE
 
@@ -28,6 +29,7 @@ ZOO_ALGOS: dict[str, type[BaseAlgorithm]] = {
     "mappo": MAPPO,
     "sunrise": SUNRISE,
     "ace": ACE,
+    "iet": IET,
 }
 #: The multi-agent algorithms tune in the search space of the SB3 algorithm they are built on
 ZOO_BASE_ALGOS = {"masac": "sac", "matd3": "td3", "maddpg": "ddpg", "mappo": "ppo"}
@@ -39,9 +41,11 @@ ZOO_COMMANDS = ("train", "enjoy", "record-video", "optimize")
 PLAYBACK_COMMANDS = ("enjoy", "record-video")
 #: The package's off-policy algorithms (rl-zoo3's ``off_policy_algos``, which its enjoy and record-video load with a
 #: one-transition replay buffer; that list is local to those commands, so :func:`playback_algos` does it for ours)
-ZOO_OFF_POLICY_ALGOS = ("serasac", "masac", "matd3", "maddpg", "sunrise", "ace")
+ZOO_OFF_POLICY_ALGOS = ("serasac", "masac", "matd3", "maddpg", "sunrise", "ace", "iet")
 #: The single-agent baselines (no CTDE tasks)
 SINGLE_AGENT_ALGOS = ("sunrise", "ace")
+#: The multi-agent-only algorithms (CTDE tasks alone)
+MULTI_AGENT_ALGOS = ("iet",)
 
 
 def _actor_only(hyperparams: dict[str, Any]) -> dict[str, Any]:
@@ -76,6 +80,15 @@ def sample_sunrise_params(trial: Any, n_actions: int, n_envs: int, additional_ar
         backup_temperature=trial.suggest_float("backup_temperature", 1.0, 50.0, log=True),
         ucb_lambda=trial.suggest_categorical("ucb_lambda", [0.0, 1.0, 10.0]),
     )
+    return hyperparams
+
+
+def sample_iet_params(trial: Any, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
+    """rl-zoo3's SAC search space (its network size for the critics) plus IET's latent size."""
+    from rl_zoo3.hyperparams_opt import sample_sac_params
+
+    hyperparams = sample_sac_params(trial, n_actions, n_envs, additional_args)
+    hyperparams["latent_dim"] = trial.suggest_categorical("latent_dim", [5, 10, 16])
     return hyperparams
 
 
@@ -141,6 +154,7 @@ def register_with_zoo(command: str = "train") -> None:
     samplers["serasac"], converters["serasac"] = sample_serasac_params, convert_serasac_params
     samplers["sunrise"], converters["sunrise"] = sample_sunrise_params, hyperparams_opt.convert_offpolicy_params
     samplers["ace"], converters["ace"] = sample_ace_params, convert_ace_params
+    samplers["iet"], converters["iet"] = sample_iet_params, hyperparams_opt.convert_offpolicy_params
     for algo, base in ZOO_BASE_ALGOS.items():
         samplers[algo], converters[algo] = samplers[base], converters[base]
 

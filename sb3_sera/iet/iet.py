@@ -1,0 +1,169 @@
+"""
+IET: Implicit Ensemble Training (Shen & How, TMLR 2023), adapted to cooperative CTDE tasks (docs/SPEC.md, section 4).
+
+Our adaptation, not the authors' (their code is RLlib PPO on competitive games, with a "main/test" alternation
+against adversaries that cooperative tasks do not have): MASAC whose per-agent actors are soft-modular networks
+conditioned on a per-agent, per-episode Gaussian latent, with centralized critics that read the latents too.
+Evaluation draws the latents the same way (one per agent per episode).
+"""
+
+import inspect
+from typing import Any, ClassVar, TypeVar
+
+import numpy as np
+import torch as th
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
+from stable_baselines3.common.vec_env import VecEnv, unwrap_vec_normalize
+
+from sb3_sera.common.checks import check_int
+from sb3_sera.ctde.algorithms import MASAC
+from sb3_sera.ctde.policies import agent_action_dims_of
+from sb3_sera.iet.latents import LATENT_KEY, LatentVecEnv
+from sb3_sera.iet.networks import routing_entropy
+from sb3_sera.iet.policies import IETPolicy
+
+SelfIET = TypeVar("SelfIET", bound="IET")
+
+#: The paper's latent size (the authors' code defaults to 5)
+DEFAULT_LATENT_DIM = 10
+#: Recent transitions, and fresh latents per transition, on which the routing statistics are measured
+ROUTING_TRANSITIONS = 256
+ROUTING_LATENT_DRAWS = 8
+
+
+def _signature() -> inspect.Signature:
+    """SAC's hyperparameters and ``latent_dim`` (keyword only): what rl-zoo3 files and bench grids may set."""
+    parameters = list(inspect.signature(MASAC).parameters.values())
+    latent = inspect.Parameter("latent_dim", inspect.Parameter.KEYWORD_ONLY, default=DEFAULT_LATENT_DIM, annotation=int)
+    return inspect.Signature([*parameters, latent])
+
+
+class IET(MASAC):
+    """
+    IET on a CTDE task (our cooperative adaptation, see the module's docstring): MASAC with per-agent soft-modular
+    actors (:class:`~sb3_sera.iet.policies.IETPolicy`) conditioned on per-agent latents ``z ~ N(0, I)`` drawn at
+    every episode start; the twin centralized critics read the state, every latent and the joint action.
+
+    Takes SAC's arguments (``IET("CTDEPolicy", env, learning_rate=..., ...)``) and
+
+    :param latent_dim: size of each agent's latent (the paper's 10), keyword only
+
+    The model's env is the given CTDE env wrapped in :class:`~sb3_sera.iet.latents.LatentVecEnv`, which adds the
+    latents to the observations (``"latent"``, shape ``(n_agents, latent_dim)``) so that the replay buffer keeps
+    them. ``predict`` also takes the CTDE env's own observations: it then draws the latents itself and returns them
+    as the state to pass back, as ``evaluate_policy`` does. ``VecNormalize`` is not supported (it would not see the
+    latents). TensorBoard adds ``train/routing_entropy`` (mean entropy of the actors' final routing weights on the
+    last stored transitions: ``log(n_modules)`` when modules are mixed evenly), ``train/mixing_entropy`` (the same
+    for the mixing between module layers) and ``train/routing_latent_std`` (standard deviation of the final routing
+    weights over fresh latents for the same observations: how much the latent chooses among the modules).
+    """
+
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"CTDEPolicy": IETPolicy}
+    policy: IETPolicy
+    __signature__ = _signature()
+
+    def __init__(
+        self, policy: str | type[IETPolicy], env: GymEnv | str, *args: Any, latent_dim: int = DEFAULT_LATENT_DIM, **kwargs: Any
+    ):
+        if isinstance(policy, str) and policy not in self.policy_aliases:
+            raise ValueError(
+                f"IET trains CTDE tasks with policy='CTDEPolicy' (per-agent soft-modular actors), got {policy!r}; "
+                "on a single-agent task use SERASAC, SAC or SUNRISE"
+            )
+        self.latent_dim = check_int("latent_dim", latent_dim, 1)
+        super().__init__(policy, env, *args, **kwargs)
+
+    def _with_latents(self, env: VecEnv) -> VecEnv:
+        """``env`` wrapped in :class:`LatentVecEnv` (unless it already holds the latents), after checking it."""
+        spaces = getattr(env.observation_space, "spaces", {})
+        if LATENT_KEY in spaces:
+            if spaces[LATENT_KEY].shape[-1] != self.latent_dim:
+                raise ValueError(
+                    f"This env already adds latents of size {spaces[LATENT_KEY].shape[-1]}, but latent_dim={self.latent_dim}"
+                )
+            return env
+        if unwrap_vec_normalize(env) is not None:
+            raise ValueError(
+                "IET does not support VecNormalize: the latents it adds to the observations would not be normalized "
+                "consistently; train without normalize (the CTDE tasks' observations are float32 and bounded by the env)"
+            )
+        return LatentVecEnv(env, len(agent_action_dims_of(env)), self.latent_dim)
+
+    def _setup_model(self) -> None:
+        if self.env is not None:
+            self.env = self._with_latents(self.env)
+            self.observation_space = self.env.observation_space
+        super()._setup_model()
+
+    def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
+        """SB3's ``set_env``; the env (a CTDE env, or one already holding the latents) gets its latents."""
+        super().set_env(self._with_latents(self._wrap_env(env, self.verbose)), force_reset)
+
+    @classmethod
+    def load(
+        cls: type[SelfIET],
+        path: Any,
+        env: GymEnv | None = None,
+        device: th.device | str = "auto",
+        custom_objects: dict[str, Any] | None = None,
+        print_system_info: bool = False,
+        force_reset: bool = True,
+        **kwargs: Any,
+    ) -> SelfIET:
+        """SB3's ``load``; the saved model's spaces include the latents, so ``env`` gets them (:meth:`set_env`) first."""
+        model = super().load(
+            path, None, device, custom_objects, print_system_info=print_system_info, force_reset=force_reset, **kwargs
+        )
+        if env is not None:
+            vec_env = model._with_latents(model._wrap_env(env, model.verbose))
+            model.n_envs = vec_env.num_envs
+            model.set_env(vec_env, force_reset=force_reset)
+        return model
+
+    def dump_logs(self) -> None:
+        if self.replay_buffer is not None and self.replay_buffer.size() > 0:
+            self._record_routing()
+        super().dump_logs()
+
+    def _record_routing(self) -> None:
+        """The routing statistics on the last stored transitions, with a generator of their own (training's untouched)."""
+        assert self.replay_buffer is not None
+        buffer = self.replay_buffer
+        assert isinstance(buffer.observations, dict)  # a DictReplayBuffer: CTDE observations
+        count = min(buffer.size(), max(1, ROUTING_TRANSITIONS // buffer.n_envs))
+        indices = (np.arange(-count, 0) + buffer.pos) % buffer.buffer_size
+        observations = {
+            key: buffer.to_torch(values[indices].reshape(-1, *values.shape[2:])) for key, values in buffer.observations.items()
+        }
+        generator = th.Generator(device=self.device).manual_seed(0)
+        latents = observations[LATENT_KEY]
+        with th.no_grad():
+            matrices, finals = self.policy.routing(observations)
+            fresh = [
+                self.policy.routing(
+                    {**observations, LATENT_KEY: th.randn(latents.shape, generator=generator, device=self.device)}
+                )[1]
+                for _ in range(ROUTING_LATENT_DRAWS)
+            ]
+        self.logger.record("train/routing_entropy", float(routing_entropy(finals)))
+        self.logger.record("train/mixing_entropy", float(routing_entropy(matrices)))
+        self.logger.record("train/routing_latent_std", float(th.stack(fresh).std(dim=0).mean()))
+
+    def learn(
+        self: SelfIET,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 4,
+        tb_log_name: str = "IET",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfIET:
+        return super().learn(
+            total_timesteps=total_timesteps,
+            callback=callback,
+            log_interval=log_interval,
+            tb_log_name=tb_log_name,
+            reset_num_timesteps=reset_num_timesteps,
+            progress_bar=progress_bar,
+        )

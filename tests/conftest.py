@@ -1,0 +1,29 @@
+"""Fixtures shared by the test files."""
+
+import os
+import subprocess
+import sys
+from collections.abc import Callable
+
+import pytest
+
+
+@pytest.fixture
+def sb3_sera() -> Callable[..., subprocess.CompletedProcess]:
+    """
+    ``sb3_sera(*args, **env)`` runs ``python -m sb3_sera ARGS`` with one OpenMP thread and ``env`` added to the
+    environment, and fails the test with the command's stderr unless it succeeds.
+    """
+
+    def run(*args: str, **env: str) -> subprocess.CompletedProcess:
+        completed = subprocess.run(
+            [sys.executable, "-m", "sb3_sera", *args],
+            capture_output=True,
+            text=True,
+            timeout=600,
+            env={**os.environ, "OMP_NUM_THREADS": "1", **env},
+        )
+        assert completed.returncode == 0, completed.stderr[-3000:]
+        return completed
+
+    return run
