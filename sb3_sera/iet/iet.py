@@ -52,11 +52,12 @@ class IET(MASAC):
     The model's env is the given CTDE env wrapped in :class:`~sb3_sera.iet.latents.LatentVecEnv`, which adds the
     latents to the observations (``"latent"``, shape ``(n_agents, latent_dim)``) so that the replay buffer keeps
     them. ``predict`` also takes the CTDE env's own observations: it then draws the latents itself and returns them
-    as the state to pass back, as ``evaluate_policy`` does. ``VecNormalize`` is not supported (it would not see the
-    latents). TensorBoard adds ``train/routing_entropy`` (mean entropy of the actors' final routing weights on the
-    last stored transitions: ``log(n_modules)`` when modules are mixed evenly), ``train/mixing_entropy`` (the same
-    for the mixing between module layers) and ``train/routing_latent_std`` (standard deviation of the final routing
-    weights over fresh latents for the same observations: how much the latent chooses among the modules).
+    as the state to pass back, as ``evaluate_policy`` does. ``VecNormalize`` is not supported (its unnormalized
+    observations, which the replay buffer stores, lack the latents). TensorBoard adds ``train/routing_entropy``
+    (mean entropy of the actors' final routing weights on the last stored transitions: ``log(n_modules)`` when
+    modules are mixed evenly), ``train/mixing_entropy`` (the same for the mixing between module layers) and
+    ``train/routing_latent_std`` (standard deviation of the final routing weights over fresh latents for the same
+    observations: how much the latent chooses among the modules).
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"CTDEPolicy": IETPolicy}
@@ -85,8 +86,8 @@ class IET(MASAC):
             return env
         if unwrap_vec_normalize(env) is not None:
             raise ValueError(
-                "IET does not support VecNormalize: the latents it adds to the observations would not be normalized "
-                "consistently; train without normalize (the CTDE tasks' observations are float32 and bounded by the env)"
+                "IET does not support VecNormalize: SB3 stores VecNormalize's unnormalized observations in the replay "
+                "buffer, and those lack the latents IET adds outside the env; train without normalize"
             )
         return LatentVecEnv(env, len(agent_action_dims_of(env)), self.latent_dim)
 
