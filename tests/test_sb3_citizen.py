@@ -11,7 +11,7 @@ import torch as th
 from stable_baselines3 import DDPG, PPO, SAC, TD3
 from stable_baselines3.common.env_util import make_vec_env
 
-from sb3_sera import MADDPG, MAPPO, MASAC, MATD3, SERASAC
+from sb3_sera import ACE, MADDPG, MAPPO, MASAC, MATD3, SERASAC, SUNRISE
 
 ENV_ID = "Pendulum-v1"
 SMALL = dict(learning_starts=50, batch_size=32, buffer_size=2_000)
@@ -194,3 +194,12 @@ def test_a_flattened_ctde_env_takes_an_ordinary_policy():
 def test_multi_agent_algorithms_keep_their_sb3_signature(algo, base):
     # Their hyperparameter names are checked against it (rl-zoo3 files, bench grids)
     assert inspect.signature(algo) == inspect.signature(base)
+
+
+@pytest.mark.parametrize("algo", [SERASAC, SUNRISE, ACE])
+def test_tensorboard_runs_are_named_after_the_algorithm(algo, tmp_path):
+    model = algo("MlpPolicy", "Pendulum-v1", tensorboard_log=str(tmp_path), **SMALL)
+    model.learn(60)
+    model.learn(60, reset_num_timesteps=False, tb_log_name="mine")
+    # SB3 continues the latest run of that name when reset_num_timesteps=False (id 0: there was none)
+    assert sorted(path.name for path in tmp_path.iterdir()) == [f"{algo.__name__}_1", "mine_0"]

@@ -1,6 +1,6 @@
 """ACE: an actor ensemble with look-ahead tree search (Zhang, Chen & Yao, AAAI 2019; SPEC section 4)."""
 
-from typing import Any, ClassVar, TypeVar
+from typing import Any, ClassVar
 
 import numpy as np
 import torch as th
@@ -9,13 +9,12 @@ from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
+from stable_baselines3.common.type_aliases import GymEnv, Schedule
 from stable_baselines3.common.utils import polyak_update
 
 from sb3_sera.ace.policies import ACEPolicy, MlpPolicy
 from sb3_sera.common.checks import check_range
-
-SelfACE = TypeVar("SelfACE", bound="ACE")
+from sb3_sera.common.naming import NamedRuns
 
 
 class DecayingNormalNoise(ActionNoise):
@@ -40,7 +39,7 @@ class DecayingNormalNoise(ActionNoise):
         return f"DecayingNormalNoise(sigma={self.sigma}, initial_sigma={self.initial_sigma})"
 
 
-class ACE(OffPolicyAlgorithm):
+class ACE(NamedRuns, OffPolicyAlgorithm):
     """
     ACE: Actor Ensemble with tree search. DDPG-style and deterministic: ``n_actors`` actor heads and one critic over a
     shared state feature, with learned reward and transition models in feature space. Each action is chosen by a
@@ -244,24 +243,6 @@ class ACE(OffPolicyAlgorithm):
         counts = th.bincount(heads, minlength=self.policy.n_actors).float()
         self.logger.record("train/top_actor_share", float(counts.max() / counts.sum()))
         self.logger.record("train/actors_picked", int((counts > 0).sum()))
-
-    def learn(
-        self: SelfACE,
-        total_timesteps: int,
-        callback: MaybeCallback = None,
-        log_interval: int = 4,
-        tb_log_name: str = "ACE",
-        reset_num_timesteps: bool = True,
-        progress_bar: bool = False,
-    ) -> SelfACE:
-        return super().learn(
-            total_timesteps=total_timesteps,
-            callback=callback,
-            log_interval=log_interval,
-            tb_log_name=tb_log_name,
-            reset_num_timesteps=reset_num_timesteps,
-            progress_bar=progress_bar,
-        )
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         return ["policy", "policy.optimizer"], []

@@ -13,10 +13,11 @@ from typing import Any, ClassVar, TypeVar
 import numpy as np
 import torch as th
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
+from stable_baselines3.common.type_aliases import GymEnv
 from stable_baselines3.common.vec_env import VecEnv, unwrap_vec_normalize
 
 from sb3_sera.common.checks import check_int
+from sb3_sera.common.naming import NamedRuns
 from sb3_sera.ctde.algorithms import MASAC
 from sb3_sera.ctde.policies import agent_action_dims_of
 from sb3_sera.iet.latents import LATENT_KEY, LatentVecEnv
@@ -39,7 +40,7 @@ def _signature() -> inspect.Signature:
     return inspect.Signature([*parameters, latent])
 
 
-class IET(MASAC):
+class IET(NamedRuns, MASAC):
     """
     IET on a CTDE task (our cooperative adaptation, see the module's docstring): MASAC with per-agent soft-modular
     actors (:class:`~sb3_sera.iet.policies.IETPolicy`) conditioned on per-agent latents ``z ~ N(0, I)`` drawn at
@@ -150,21 +151,3 @@ class IET(MASAC):
         self.logger.record("train/routing_entropy", float(routing_entropy(finals)))
         self.logger.record("train/mixing_entropy", float(routing_entropy(matrices)))
         self.logger.record("train/routing_latent_std", float(th.stack(fresh).std(dim=0).mean()))
-
-    def learn(
-        self: SelfIET,
-        total_timesteps: int,
-        callback: MaybeCallback = None,
-        log_interval: int = 4,
-        tb_log_name: str = "IET",
-        reset_num_timesteps: bool = True,
-        progress_bar: bool = False,
-    ) -> SelfIET:
-        return super().learn(
-            total_timesteps=total_timesteps,
-            callback=callback,
-            log_interval=log_interval,
-            tb_log_name=tb_log_name,
-            reset_num_timesteps=reset_num_timesteps,
-            progress_bar=progress_bar,
-        )

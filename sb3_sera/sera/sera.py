@@ -2,17 +2,18 @@
 
 import warnings
 from collections.abc import Callable
-from typing import Any, ClassVar, NamedTuple, TypeVar
+from typing import Any, ClassVar, NamedTuple
 
 import torch as th
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, PyTorchObs, Schedule
+from stable_baselines3.common.type_aliases import GymEnv, PyTorchObs, Schedule
 from stable_baselines3.common.utils import FloatSchedule, polyak_update
 from stable_baselines3.sac import SAC
 
 from sb3_sera.common.checks import check_choice, check_ent_coef, check_int, check_off_policy_hyperparameters, check_range
+from sb3_sera.common.naming import NamedRuns
 from sb3_sera.ctde.policies import SERACTDEPolicy, fill_agent_layout, make_env_for_policy
 from sb3_sera.sera.aggregation import (
     ACTOR_AGGREGATIONS,
@@ -30,8 +31,6 @@ from sb3_sera.sera.aggregation import (
 )
 from sb3_sera.sera.policies import CnnPolicy, EnsembleCritic, MlpPolicy, MultiInputPolicy, SERAPolicy
 from sb3_sera.sera.step_size import StepSizeUpdate, VarianceAdaptiveStepSize, batch_variance
-
-SelfSERASAC = TypeVar("SelfSERASAC", bound="SERASAC")
 
 #: Learning rate of the actor and the entropy coefficient, as SB3's SAC
 DEFAULT_LEARNING_RATE = 3e-4
@@ -56,7 +55,7 @@ class CriticUpdate(NamedTuple):
     step_size: StepSizeUpdate
 
 
-class SERASAC(SAC):
+class SERASAC(NamedRuns, SAC):
     """
     Soft Ensemble Reliability Aggregation on top of Soft Actor-Critic.
 
@@ -543,24 +542,6 @@ class SERASAC(SAC):
         for prefix, values in zip(("kappa", "P", "R"), per_critic, strict=True):
             for index, value in enumerate(values):
                 self.logger.record(f"train/{prefix}_{index}", value)
-
-    def learn(
-        self: SelfSERASAC,
-        total_timesteps: int,
-        callback: MaybeCallback = None,
-        log_interval: int = 4,
-        tb_log_name: str = "SERASAC",
-        reset_num_timesteps: bool = True,
-        progress_bar: bool = False,
-    ) -> SelfSERASAC:
-        return super().learn(
-            total_timesteps=total_timesteps,
-            callback=callback,
-            log_interval=log_interval,
-            tb_log_name=tb_log_name,
-            reset_num_timesteps=reset_num_timesteps,
-            progress_bar=progress_bar,
-        )
 
     def _excluded_save_params(self) -> list[str]:
         return [

@@ -1,6 +1,6 @@
 """SUNRISE: an ensemble of SAC agents with weighted Bellman backups and UCB exploration (docs/SPEC.md, section 4)."""
 
-from typing import Any, ClassVar, TypeVar, cast
+from typing import Any, ClassVar, cast
 
 import numpy as np
 import torch as th
@@ -10,10 +10,11 @@ from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
+from stable_baselines3.common.type_aliases import GymEnv, Schedule
 from stable_baselines3.common.utils import polyak_update
 
 from sb3_sera.common.checks import check_ent_coef, check_int, check_off_policy_hyperparameters, check_range
+from sb3_sera.common.naming import NamedRuns
 from sb3_sera.sunrise.buffers import SUNRISEReplayBuffer, SUNRISEReplayBufferSamples
 from sb3_sera.sunrise.ensemble import backup_weight, ensemble_std, masked_mean, weighted_bellman_loss
 from sb3_sera.sunrise.policies import (
@@ -25,10 +26,8 @@ from sb3_sera.sunrise.policies import (
     SUNRISEPolicy,
 )
 
-SelfSUNRISE = TypeVar("SelfSUNRISE", bound="SUNRISE")
 
-
-class SUNRISE(OffPolicyAlgorithm):
+class SUNRISE(NamedRuns, OffPolicyAlgorithm):
     """
     SUNRISE (Lee, Laskin, Srinivas and Abbeel, ICML 2021): ``n_members`` independent SAC agents, each with its own
     actor, twin critics, target critics and entropy coefficient, trained on its own bootstrap mask of the replayed
@@ -345,24 +344,6 @@ class SUNRISE(OffPolicyAlgorithm):
                     "changed, so the model can still be saved. Check the rewards and observations for inf/NaN, "
                     "or lower the learning rate."
                 )
-
-    def learn(
-        self: SelfSUNRISE,
-        total_timesteps: int,
-        callback: MaybeCallback = None,
-        log_interval: int = 4,
-        tb_log_name: str = "SUNRISE",
-        reset_num_timesteps: bool = True,
-        progress_bar: bool = False,
-    ) -> SelfSUNRISE:
-        return super().learn(
-            total_timesteps=total_timesteps,
-            callback=callback,
-            log_interval=log_interval,
-            tb_log_name=tb_log_name,
-            reset_num_timesteps=reset_num_timesteps,
-            progress_bar=progress_bar,
-        )
 
     def _excluded_save_params(self) -> list[str]:
         return [*super()._excluded_save_params(), "actor", "critic", "critic_target", "_episode_members"]
