@@ -2,6 +2,7 @@
 
 import inspect
 import math
+import warnings
 from typing import ClassVar
 
 import gymnasium as gym
@@ -273,6 +274,29 @@ def test_signature_progress_bar_and_tensorboard(tmp_path):
     assert {"train/routing_entropy", "train/mixing_entropy", "train/routing_latent_std", "train/critic_loss"} <= tags
 
 
+def test_evaluations_draw_latents_without_touching_training(tmp_path):
+    from sb3_sera.common.callbacks import InitialStateBiasCallback
+
+    def train(evaluate: bool):
+        model = IET("CTDEPolicy", ENV_ID, seed=0, **SMALL)
+        evaluation = make_vec_env(ENV_ID, seed=1)
+        callback = InitialStateBiasCallback(evaluation, eval_freq=50, n_eval_episodes=2, log_path=str(tmp_path))
+        with warnings.catch_warnings():
+            warnings.filterwarnings("error", message="Training and eval env are not of the same type")
+            model.learn(150, callback=callback if evaluate else None)
+        return model, callback
+
+    evaluated, callback = train(True)
+    assert isinstance(callback.eval_env, LatentVecEnv) and len(callback.bias_values) == 3
+    plain, _ = train(False)
+    for (name, a), b in zip(evaluated.policy.state_dict().items(), plain.policy.state_dict().values(), strict=True):
+        assert th.equal(a, b), name
+    # Repeatable: the evaluation latents come from the model's seed
+    _, again = train(True)
+    np.testing.assert_array_equal(np.array(again.evaluations_results), np.array(callback.evaluations_results))
+    assert np.array(callback.bias_values).shape == (3, 2)
+
+
 def test_decentralized_controllers_with_latents(tmp_path):
     model = IET("CTDEPolicy", "sb3_sera/Pusher-3p-v0", seed=0, **SMALL).learn(64)
     controllers = DecentralizedActors.from_model(model)
@@ -358,7 +382,7 @@ def test_zoo_train_with_evaluations_then_enjoy(tmp_path, sb3_sera):
     )
     run = tmp_path / "iet" / "sb3_sera-SimpleSpread-v0_1"
     assert (run / "sb3_sera-SimpleSpread-v0.zip").exists() and (run / "evaluations.npz").exists()
-    # The evaluations (on an env without latents: the policy drew them) also valued each episode's first state
+    # The evaluations (their env given latents by the callback) also valued each episode's first state
     assert np.load(run / "initial_state_bias.npz")["values"].shape == (2, 2)
     assert "Mean reward" in sb3_sera("enjoy", *common, "--exp-id", "1", "-n", "60", "--no-render").stdout
 

@@ -17,7 +17,7 @@ from stable_baselines3.common.policies import ActorCriticPolicy
 from stable_baselines3.sac import SAC
 from torch import nn
 
-from sb3_sera.iet.latents import LATENT_KEY
+from sb3_sera.iet import IET
 from sb3_sera.sera import SERASAC
 from sb3_sera.sera.aggregation import correlation_matrix, mean_off_diagonal
 
@@ -60,6 +60,10 @@ class InitialStateBiasCallback(EvalCallback):
         self.records_bias = False
 
     def _init_callback(self) -> None:
+        if isinstance(self.model, IET):
+            # IET's evaluation episodes draw their latents as its training episodes do, from a generator of their own
+            # seeded with the model's seed: evaluations are repeatable and leave training's random streams alone
+            self.eval_env = self.model.with_latents(self.eval_env, seed=self.model.seed)
         super()._init_callback()
         policy = self.model.policy
         self.records_bias = _has_value_function(policy) or (
@@ -94,10 +98,6 @@ class InitialStateBiasCallback(EvalCallback):
             observations = locals_["observations"]
             if isinstance(observations, dict):
                 observation: Any = {key: value[env_index] for key, value in observations.items()}
-                states = locals_["states"]
-                if LATENT_KEY in self.model.observation_space.spaces and LATENT_KEY not in observation:  # type: ignore[attr-defined]
-                    # IET on an env without its latents: they are the policy's state (IETPolicy.predict)
-                    observation[LATENT_KEY] = states[0][env_index]
             else:
                 observation = observations[env_index]
             self._running[env_index] = (self._initial_value(observation, locals_["actions"][env_index]), 0.0)

@@ -76,8 +76,13 @@ class IET(NamedRuns, MASAC):
         self.latent_dim = check_int("latent_dim", latent_dim, 1)
         super().__init__(policy, env, *args, **kwargs)
 
-    def _with_latents(self, env: VecEnv) -> VecEnv:
-        """``env`` wrapped in :class:`LatentVecEnv` (unless it already holds the latents), after checking it."""
+    def with_latents(self, env: VecEnv, seed: int | None = None) -> VecEnv:
+        """
+        ``env`` wrapped in :class:`LatentVecEnv` (unless it already holds the latents), after checking it.
+
+        :param env: a vectorized CTDE env with the model's agents
+        :param seed: seed of the latents' generator
+        """
         spaces = getattr(env.observation_space, "spaces", {})
         if LATENT_KEY in spaces:
             if spaces[LATENT_KEY].shape[-1] != self.latent_dim:
@@ -90,17 +95,17 @@ class IET(NamedRuns, MASAC):
                 "IET does not support VecNormalize: SB3 stores VecNormalize's unnormalized observations in the replay "
                 "buffer, and those lack the latents IET adds outside the env; train without normalize"
             )
-        return LatentVecEnv(env, len(agent_action_dims_of(env)), self.latent_dim)
+        return LatentVecEnv(env, len(agent_action_dims_of(env)), self.latent_dim, seed=seed)
 
     def _setup_model(self) -> None:
         if self.env is not None:
-            self.env = self._with_latents(self.env)
+            self.env = self.with_latents(self.env)
             self.observation_space = self.env.observation_space
         super()._setup_model()
 
     def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
         """SB3's ``set_env``; the env (a CTDE env, or one already holding the latents) gets its latents."""
-        super().set_env(self._with_latents(self._wrap_env(env, self.verbose)), force_reset)
+        super().set_env(self.with_latents(self._wrap_env(env, self.verbose)), force_reset)
 
     @classmethod
     def load(
@@ -118,7 +123,7 @@ class IET(NamedRuns, MASAC):
             path, None, device, custom_objects, print_system_info=print_system_info, force_reset=force_reset, **kwargs
         )
         if env is not None:
-            vec_env = model._with_latents(model._wrap_env(env, model.verbose))
+            vec_env = model.with_latents(model._wrap_env(env, model.verbose))
             model.n_envs = vec_env.num_envs
             model.set_env(vec_env, force_reset=force_reset)
         return model
