@@ -123,8 +123,8 @@ class IET(NamedRuns, MASAC):
             path, None, device, custom_objects, print_system_info=print_system_info, force_reset=force_reset, **kwargs
         )
         if env is not None:
-            vec_env = model.with_latents(model._wrap_env(env, model.verbose))
-            model.n_envs = vec_env.num_envs
+            vec_env = model._wrap_env(env, model.verbose)
+            model.n_envs = vec_env.num_envs  # SB3's load takes the env's number of envs; set_env insists on the model's
             model.set_env(vec_env, force_reset=force_reset)
         return model
 

@@ -49,7 +49,8 @@ class LatentVecEnv(VecEnvWrapper):
         self.n_agents = n_agents
         self.latent_dim = latent_dim
         self.rng = np.random.default_rng(seed)
-        self.latents = draw_latents(self.rng, self.num_envs, n_agents, latent_dim)
+        # Drawn at each reset; none is acted on before the first
+        self.latents = np.zeros((self.num_envs, n_agents, latent_dim), dtype=np.float32)
 
     def _draw(self, n_envs: int) -> np.ndarray:
         return draw_latents(self.rng, n_envs, self.n_agents, self.latent_dim)
