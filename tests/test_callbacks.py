@@ -13,7 +13,14 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import configure
 
 from sb3_sera import SERASAC
-from sb3_sera.common.callbacks import BIAS_FILE, DIAGNOSTICS_FILE, InitialStateBiasCallback, critic_diagnostics
+from sb3_sera.common.callbacks import (
+    BIAS_FILE,
+    DIAGNOSTICS_FILE,
+    InitialStateBiasCallback,
+    critic_diagnostics,
+    monte_carlo_errors,
+    monte_carlo_samples,
+)
 
 START = np.array([0.3, -0.2], dtype=np.float32)
 
@@ -149,3 +156,60 @@ def test_serasac_logs_the_td_error_correlation(tmp_path):
     values = progress["train/td_error_corr"].dropna()
     assert len(values) == 2 and values.between(-1.0, 1.0).all()
     assert "train/critic_corr" in progress
+
+
+def test_monte_carlo_samples_by_hand():
+    episode = [(np.array([t]), np.array([0.0]), float(t + 1)) for t in range(3)]
+    # rewards 1, 2, 3 and gamma 0.5: returns-to-go 1 + 0.5 * 2 + 0.25 * 3, 2 + 0.5 * 3, 3
+    samples = monte_carlo_samples(episode, 0.5, truncated=False)
+    assert [sample[2] for sample in samples] == [2.75, 3.5, 3.0]
+    assert [int(sample[0][0]) for sample in samples] == [0, 1, 2]
+    # Cut by a time limit after 10 steps: step t's unseen tail weighs 0.5 ** (10 - t), at most 0.01 for t <= 3
+    long_episode = [(np.array([t]), np.array([0.0]), 1.0) for t in range(10)]
+    kept = monte_carlo_samples(long_episode, 0.5, truncated=True)
+    assert len(kept) == 4
+    assert kept[3][2] == pytest.approx(sum(0.5**u for u in range(7)))
+    assert monte_carlo_samples(long_episode[:6], 0.5, truncated=True) == []
+    assert monte_carlo_samples(long_episode, 1.0, truncated=True) == []
+
+
+def test_monte_carlo_errors_by_hand():
+    model = SAC("MlpPolicy", CountingEnv(), learning_starts=6, batch_size=4, seed=0).learn(12)
+    rng = np.random.default_rng(0)
+    observations = rng.uniform(-1, 1, (7, 2)).astype(np.float32)
+    actions = rng.uniform(-2, 2, (7, 1)).astype(np.float32)
+    returns = rng.normal(size=7)
+    samples = [(observations[i], actions[i], float(returns[i])) for i in range(7)]
+    values = monte_carlo_errors(model, samples, n_critics=2)
+    with th.no_grad():
+        q_values = th.cat(model.critic(th.as_tensor(observations), th.as_tensor(actions / 2.0)), dim=1).numpy()
+    errors = q_values - returns[:, None]
+    np.testing.assert_allclose(values["mc_error_corr_matrix"], np.corrcoef(errors.T), atol=1e-5)
+    np.testing.assert_allclose(values["mc_error_mean"], errors.mean(axis=0), rtol=1e-5)
+    np.testing.assert_allclose(values["mc_error_cov_matrix"], np.cov(errors.T, bias=True), rtol=1e-4)
+    assert int(values["mc_samples"]) == 7
+    empty = monte_carlo_errors(model, samples[:1], n_critics=2)
+    assert np.isnan(empty["mc_error_corr_matrix"]).all() and int(empty["mc_samples"]) == 1
+
+
+@pytest.mark.parametrize("algo", [SERASAC, SAC])
+def test_evaluation_episodes_give_the_monte_carlo_errors(algo, tmp_path):
+    # learning_starts above the budget: the critics the evaluations saw are the model's after learn()
+    model = algo("MlpPolicy", CountingEnv(), learning_starts=30, batch_size=4, gamma=0.5, seed=0)
+    eval_env = make_vec_env(CountingEnv, n_envs=2)
+    callback = InitialStateBiasCallback(eval_env, eval_freq=9, n_eval_episodes=4, log_path=str(tmp_path), verbose=0)
+    model.learn(18, callback=callback)
+    records = np.load(tmp_path / DIAGNOSTICS_FILE)
+    n_critics = 5 if algo is SERASAC else 2
+    # Four episodes of three terminated steps each at each evaluation
+    assert records["mc_samples"].tolist() == [12, 12]
+    assert records["mc_error_corr_matrix"].shape == (2, n_critics, n_critics)
+    assert records["mc_error_mean"].shape == (2, n_critics)
+    # The last evaluation's errors, recomputed: every episode repeats START, the deterministic action, and the
+    # returns-to-go 2.75, 3.5, 3 (rewards 1, 2, 3, gamma 0.5), so each critic's mean error is its value minus 3.0833
+    action, _ = model.predict(START, deterministic=True)
+    with th.no_grad():
+        q_values = model.critic(th.as_tensor(START).reshape(1, -1), th.as_tensor(action / 2.0).reshape(1, -1))
+    expected = th.cat(q_values, dim=1).numpy()[0] - np.mean([2.75, 3.5, 3.0])
+    np.testing.assert_allclose(records["mc_error_mean"][-1], expected, rtol=1e-5)
+    assert {"td_target_mean", "critic_cov_matrix", "td_error_cov_matrix"} <= set(records.files)

@@ -1,9 +1,12 @@
 """
 Evaluation that also measures the initial-state value bias of the critics (paper section 6, Fig. 4a) and, for the SAC
-family, the critics' TD-target variance and correlations on a replay batch (Fig. 4c and 5).
+family, the critics' TD-target variance and correlations on a replay batch (Fig. 4c and 5), and the correlation of
+their errors against the Monte Carlo returns of the evaluation episodes (a measure of synchronisation that the values'
+own correlation, dominated by each state's value, cannot show).
 """
 
 import inspect
+import math
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
@@ -24,6 +27,9 @@ from sb3_sera.sera.aggregation import correlation_matrix, mean_off_diagonal
 #: Files written beside ``evaluations.npz`` in the callback's ``log_path``
 BIAS_FILE = "initial_state_bias.npz"
 DIAGNOSTICS_FILE = "critic_diagnostics.npz"
+#: Weight of a truncated episode's unseen tail (``gamma ** steps_left``) above which a step's return-to-go is not
+#: used as a Monte Carlo return
+MC_TAIL_WEIGHT = 0.01
 
 
 class InitialStateBiasCallback(EvalCallback):
@@ -38,7 +44,10 @@ class InitialStateBiasCallback(EvalCallback):
     (``timesteps``, ``values``, ``discounted_returns``, one row per evaluation and one column per episode).
     For a model of the SAC family (SAC, MASAC, SERASAC) with a filled replay buffer, each evaluation also records
     :func:`critic_diagnostics` on ``diagnostics_batch_size`` replayed transitions to ``critic_diagnostics.npz``
-    (one row per evaluation), with the random generators' states put back so that training is unchanged.
+    (one row per evaluation), with the random generators' states put back so that training is unchanged, and
+    :func:`monte_carlo_errors` on the evaluation's own steps: each critic's error against the discounted return
+    that followed each step of the evaluation episodes (steps of an episode cut by a time limit count only while
+    the unseen tail weighs at most ``MC_TAIL_WEIGHT``, i.e. ``gamma ** steps_left <= 0.01``).
     Takes the arguments of ``EvalCallback``. For a model with neither Q critics over Box actions nor a
     feed-forward value function (DQN, recurrent policies), it warns once and evaluates as ``EvalCallback`` does.
 
@@ -53,6 +62,10 @@ class InitialStateBiasCallback(EvalCallback):
         self._values: list[float] = []
         self._returns: list[float] = []
         self._running: dict[int, tuple[float, float]] = {}
+        # Per env, the evaluation episode under way: observations, actions and rewards; per evaluation, the steps
+        # kept as Monte Carlo samples (observation, action, discounted return that followed)
+        self._episodes: dict[int, list[tuple[Any, np.ndarray, float]]] = {}
+        self._mc_samples: list[tuple[Any, np.ndarray, float]] = []
         self.bias_timesteps: list[int] = []
         self.bias_values: list[list[float]] = []
         self.bias_returns: list[list[float]] = []
@@ -94,18 +107,19 @@ class InitialStateBiasCallback(EvalCallback):
         if not self.records_bias:
             return
         env_index, step = locals_["i"], int(locals_["current_lengths"][locals_["i"]]) - 1
+        observation = observation_at(locals_["observations"], env_index)
         if step == 0:
-            observations = locals_["observations"]
-            if isinstance(observations, dict):
-                observation: Any = {key: value[env_index] for key, value in observations.items()}
-            else:
-                observation = observations[env_index]
             self._running[env_index] = (self._initial_value(observation, locals_["actions"][env_index]), 0.0)
+            self._episodes[env_index] = []
         value, discounted_return = self._running[env_index]
-        discounted_return += float(self.model.gamma) ** step * float(locals_["reward"])  # type: ignore[attr-defined]
+        gamma = float(self.model.gamma)  # type: ignore[attr-defined]
+        discounted_return += gamma**step * float(locals_["reward"])
         self._running[env_index] = (value, discounted_return)
+        self._episodes[env_index].append((observation, locals_["actions"][env_index], float(locals_["reward"])))
         # evaluate_policy's own rule for the end of an episode (a Monitor-wrapped env's lost life is not one)
         if locals_["done"] and (not locals_["is_monitor_wrapped"] or "episode" in locals_["info"]):
+            truncated = bool(locals_["info"].get("TimeLimit.truncated", False))
+            self._mc_samples.extend(monte_carlo_samples(self._episodes.pop(env_index), gamma, truncated))
             self._values.append(value)
             self._returns.append(discounted_return)
             # Recorded after every episode: the logger keeps the last value, the mean over the whole evaluation
@@ -117,6 +131,7 @@ class InitialStateBiasCallback(EvalCallback):
         evaluating = self.eval_freq > 0 and self.n_calls % self.eval_freq == 0
         if evaluating:
             self._values, self._returns, self._running = [], [], {}
+            self._episodes, self._mc_samples = {}, []
         continue_training = super()._on_step()
         if evaluating and self.records_bias:
             self.bias_timesteps.append(self.num_timesteps)
@@ -143,10 +158,11 @@ class InitialStateBiasCallback(EvalCallback):
         with th.random.fork_rng(devices=devices):
             values = critic_diagnostics(model, self.diagnostics_batch_size)
         np.random.set_state(numpy_state)
+        values.update(monte_carlo_errors(model, self._mc_samples, n_critics=values["critic_corr_matrix"].shape[0]))
         values["timesteps"] = np.array(self.num_timesteps)
         for key, value in values.items():
             self.diagnostics.setdefault(key, []).append(value)
-        for key in ("td_target_var", "critic_corr", "td_error_corr"):
+        for key in ("td_target_var", "critic_corr", "td_error_corr", "mc_error_corr"):
             self.logger.record(f"eval/{key}", float(values[key]))
         if self.log_path is not None:
             arrays: dict[str, Any] = {key: np.stack(value) for key, value in self.diagnostics.items()}
@@ -159,9 +175,11 @@ def critic_diagnostics(model: SAC, batch_size: int) -> dict[str, np.ndarray]:
     model trains on (SERASAC: its aggregation of the target critics; SAC and MASAC: the minimum of the twin target
     critics), the online values ``Q_i(s, a)`` and the TD errors ``delta_i = y - Q_i(s, a)``.
 
-    :return: ``td_target_var`` (batch variance of ``y``), ``critic_corr_matrix`` and ``td_error_corr_matrix``
-        (K x K Pearson correlations over the batch of the values and of the TD errors), their mean off-diagonal
-        entries ``critic_corr`` and ``td_error_corr``, and for SERASAC the critics' current learning rates
+    :return: ``td_target_var`` (batch variance of ``y``) and ``td_target_mean`` (its batch mean, the scale that
+        normalises the variance), ``critic_corr_matrix`` and ``td_error_corr_matrix`` (K x K Pearson correlations over
+        the batch of the values and of the TD errors), their mean off-diagonal entries ``critic_corr`` and
+        ``td_error_corr``, ``critic_cov_matrix`` and ``td_error_cov_matrix`` (the K x K covariances, from which any
+        other linear measure of the critics can be derived), and for SERASAC the critics' current learning rates
         ``critic_lr`` (K values)
     """
     assert model.replay_buffer is not None
@@ -191,18 +209,105 @@ def critic_diagnostics(model: SAC, batch_size: int) -> dict[str, np.ndarray]:
             current_q_values = th.cat(model.critic(replay_data.observations, replay_data.actions), dim=1)
         critic_corr = correlation_matrix(current_q_values)
         td_error_corr = correlation_matrix(target_q_values - current_q_values)
+        td_errors = target_q_values - current_q_values
         values = {
             "td_target_var": target_q_values.var(unbiased=False),
+            "td_target_mean": target_q_values.mean(),
             "critic_corr_matrix": critic_corr,
             "critic_corr": mean_off_diagonal(critic_corr),
             "td_error_corr_matrix": td_error_corr,
             "td_error_corr": mean_off_diagonal(td_error_corr),
+            "critic_cov_matrix": th.cov(current_q_values.T, correction=0),
+            "td_error_cov_matrix": th.cov(td_errors.T, correction=0),
         }
     result = {key: value.cpu().numpy() for key, value in values.items()}
     if isinstance(model, SERASAC):
         rates = {group["critic_index"]: group["lr"] for group in model.critic.optimizer.param_groups}
         result["critic_lr"] = np.array([rates[index] for index in range(model.critic.n_critics)])
     return result
+
+
+def observation_at(observations: Any, index: int) -> Any:
+    """A copy of observation ``index`` of a vectorized batch (a Dict observation: each key's row)."""
+    if isinstance(observations, dict):
+        return {key: np.array(value[index]) for key, value in observations.items()}
+    return np.array(observations[index])
+
+
+def monte_carlo_samples(
+    episode: Sequence[tuple[Any, np.ndarray, float]], gamma: float, truncated: bool
+) -> list[tuple[Any, np.ndarray, float]]:
+    """
+    The steps of one episode whose discounted return-to-go ``G_t = sum_{u >= t} gamma^(u-t) r_u`` is a Monte Carlo
+    return of ``(s_t, a_t)``: every step of an episode that ended in a terminal state; of one cut by a time limit,
+    the steps whose unseen tail weighs ``gamma ** steps_left <= MC_TAIL_WEIGHT``.
+
+    :param episode: ``(observation, action, reward)`` per step
+    :return: ``(observation, action, G_t)`` per kept step
+    """
+    returns = np.zeros(len(episode))
+    running = 0.0
+    for t in range(len(episode) - 1, -1, -1):
+        running = episode[t][2] + gamma * running
+        returns[t] = running
+    kept = len(episode)
+    if truncated:
+        # Step t's unseen tail weighs gamma ** (len - t): kept while len - t >= the horizon where it falls to the limit
+        if gamma >= 1.0:
+            kept = 0
+        elif gamma > 0.0:
+            horizon = math.ceil(math.log(MC_TAIL_WEIGHT) / math.log(gamma))
+            kept = max(len(episode) - horizon + 1, 0)
+    return [(observation, action, float(returns[t])) for t, (observation, action, _) in enumerate(episode[:kept])]
+
+
+def monte_carlo_errors(model: SAC, samples: Sequence[tuple[Any, np.ndarray, float]], n_critics: int) -> dict[str, np.ndarray]:
+    """
+    Each critic's error against Monte Carlo returns, ``e_i = Q_i(s, a) - G`` over the ``(s, a, G)`` samples of
+    :func:`monte_carlo_samples`, and how the critics' errors move together.
+
+    Unlike the correlation of the values (near 1 for any trained ensemble, since values differ most between states)
+    this correlation is high only when the critics make the same errors: the synchronisation the paper's Fig. 5
+    attributes to a shared step size. The errors include whatever separates the critics' target (the soft value of
+    the stochastic policy) from the deterministic evaluation policy's return; that part is common to the critics
+    and to the variants compared.
+
+    :return: ``mc_error_corr_matrix`` and ``mc_error_cov_matrix`` (K x K, over the samples), ``mc_error_corr`` (mean
+        off-diagonal correlation), ``mc_error_mean`` (K mean errors) and ``mc_samples`` (the number of samples);
+        NaN where fewer than two samples were kept
+    """
+    nan_matrix = np.full((n_critics, n_critics), np.nan, dtype=np.float32)
+    if len(samples) < 2:
+        return {
+            "mc_error_corr_matrix": nan_matrix,
+            "mc_error_cov_matrix": nan_matrix.copy(),
+            "mc_error_corr": np.array(np.nan, dtype=np.float32),
+            "mc_error_mean": np.full(n_critics, np.nan, dtype=np.float32),
+            "mc_samples": np.array(len(samples)),
+        }
+    policy = model.policy
+    first = samples[0][0]
+    if isinstance(first, dict):
+        observations: Any = {key: np.stack([sample[0][key] for sample in samples]) for key in first}
+    else:
+        observations = np.stack([sample[0] for sample in samples])
+    actions = np.stack([sample[1] for sample in samples]).reshape(len(samples), -1)
+    returns = th.as_tensor(np.array([sample[2] for sample in samples]), dtype=th.float32, device=policy.device)
+    with th.no_grad():
+        obs_tensor, _ = policy.obs_to_tensor(observations)
+        action_tensor = th.as_tensor(policy.scale_action(actions), device=policy.device).float()
+        values = cast(nn.Module, policy.critic)(obs_tensor, action_tensor)
+        # TQC's critics return quantiles (batch, critics, quantiles): a critic's value is their mean
+        q_values = values.mean(dim=-1) if isinstance(values, th.Tensor) else th.cat(values, dim=1)
+        errors = q_values - returns.reshape(-1, 1)
+        corr = correlation_matrix(errors)
+        result = {
+            "mc_error_corr_matrix": corr,
+            "mc_error_cov_matrix": th.cov(errors.T, correction=0),
+            "mc_error_corr": mean_off_diagonal(corr),
+            "mc_error_mean": errors.mean(dim=0),
+        }
+    return {**{key: value.cpu().numpy() for key, value in result.items()}, "mc_samples": np.array(len(samples))}
 
 
 def initial_state_bias(values: Sequence[Sequence[float]], discounted_returns: Sequence[Sequence[float]]) -> list[float]:

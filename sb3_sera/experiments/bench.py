@@ -37,7 +37,8 @@ def load_grid(path: str | Path, num_threads: int | None = 1, device: str = "auto
 
     :param num_threads: torch threads of each run (None: torch's default)
     :param device: torch device of each run
-    :return: the runs, variant by variant, then task by task, then seed by seed
+    :return: the runs, seed by seed, then task by task, then variant by variant: a grid stopped part way has
+        every variant at its first seeds
     """
     grid = yaml.safe_load(Path(path).read_text())
     if not isinstance(grid, dict):
@@ -66,9 +67,9 @@ def load_grid(path: str | Path, num_threads: int | None = 1, device: str = "auto
     eval_freq = int(grid.get("eval_freq", max(n_timesteps // 10, 1)))
     episodes = int(grid.get("eval_episodes", 5))
     specs = []
-    for name, (algo, overrides) in variants.items():
+    for seed in grid["seeds"]:
         for task in grid["tasks"]:
-            for seed in grid["seeds"]:
+            for name, (algo, overrides) in variants.items():
                 try:
                     spec = make_spec(name, algo, task, seed, n_timesteps, overrides, eval_freq, episodes, num_threads, device)
                 except ValueError as error:

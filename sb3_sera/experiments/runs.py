@@ -6,7 +6,8 @@ Hyperparameters come from where ``sb3-sera train`` takes them: the task's entry 
 package's file, else rl-zoo3's own), then the variant's or the command line's overrides. A run lives in
 ``<out>/<variant>/<env_name>_<id>/`` (ids from 1, as the zoo numbers them) and holds, as the zoo writes them,
 ``<env_name>/config.yml`` (the resolved hyperparameters) and ``<env_name>/args.yml`` (algorithm, variant, env id,
-seed, budget, evaluation settings, threads, device, where the hyperparameters came from and the package versions),
+seed, budget, evaluation settings, threads, device, where the hyperparameters came from, the package versions, and
+the git commit of the code that ran with whether its tree was clean),
 then ``evaluations.npz`` and the callback's records, ``0.monitor.csv``, TensorBoard events under
 ``<variant>_seed<seed>_1/``, the final model ``<env_name>.zip`` and, written last, ``result.json`` (wall time, and
 the torch threads and device the run had). A run whose
@@ -16,7 +17,9 @@ records match a finished run's is not run again; an interrupted one runs again i
 import json
 import math
 import os
+import platform
 import shutil
+import subprocess
 import time
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -87,10 +90,12 @@ def default_hyperparams(algo: str, env_id: str) -> tuple[dict[str, Any], str]:
     """
     path = hyperparams_file(algo)
     entries = yaml.safe_load(path.read_text()) if path.exists() else {}
+    # Named from its package (sb3_sera/hyperparams/serasac.yml), never by the absolute path of this machine
+    where = f"{path.parent.parent.name}/{path.parent.name}/{path.name}"
     for key in (env_id, "default"):
         if key in (entries or {}):
-            return dict(entries[key]), f"{path}:{key}"
-    return {}, f"no entry for {env_id} in {path}: the algorithm's defaults"
+            return dict(entries[key]), f"{where}:{key}"
+    return {}, f"no entry for {env_id} in {where}: the algorithm's defaults"
 
 
 def accepted_hyperparams(algo: str) -> set[str]:
@@ -155,6 +160,8 @@ class RunSpec:
             "device": self.device,
             "hyperparams_source": self.hyperparams_source,
             "versions": package_versions(),
+            **source_revision(),
+            "machine": platform.machine(),
         }
 
     def config(self) -> dict[str, Any]:
@@ -212,6 +219,27 @@ def package_versions() -> dict[str, str]:
         except metadata.PackageNotFoundError:
             continue
     return versions
+
+
+def source_revision() -> dict[str, Any]:
+    """
+    The git commit of the code that runs (``git_commit``) and whether its tree was clean (``git_clean``): read from
+    the repository this package is imported from; both None for an installed package outside a git checkout.
+    """
+    root = Path(__file__).resolve().parents[2]
+
+    def git(*args: str) -> str | None:
+        try:
+            done = subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True, timeout=30, check=False)
+        except (OSError, subprocess.SubprocessError):
+            return None
+        return done.stdout.strip() if done.returncode == 0 else None
+
+    commit = git("rev-parse", "HEAD") if (root / ".git").exists() else None
+    if commit is None:
+        return {"git_commit": None, "git_clean": None}
+    status = git("status", "--porcelain")
+    return {"git_commit": commit, "git_clean": status == ""}
 
 
 class _RecordLoader(yaml.SafeLoader):
