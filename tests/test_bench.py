@@ -36,7 +36,21 @@ def write(tmp_path, text: str):
         (("Pendulum-v1", "Pendulum-v9"), r"unknown task 'Pendulum-v9'; registered ids include .*sb3_sera/"),
         (("batch_size: 32", "batch_sise: 32"), r"unknown hyperparameter\(s\) \['batch_sise'\] for serasac; allowed: "),
         (("seeds: [0]", "seed: [0]"), r"unknown key\(s\) \['seed'\]; allowed: "),
-        (("batch_size: 32", "batch_size: 0"), r"serasac on Pendulum-v1: ValueError: batch_size=0 is out of range"),
+        (("batch_size: 32", "batch_size: 0"), r"serasac on Pendulum-v1: batch_size=0 is invalid: it must be an integer >= 1"),
+        (("batch_size: 32", "batch_size: -4"), r"batch_size=-4 is invalid: it must be an integer >= 1"),
+        (("learning_starts: 50", "learning_starts: abc"), r"learning_starts='abc' is invalid: it must be an integer >= 0"),
+        (("learning_starts: 50", "learning_starts: 200"), r"learning_starts=200 is at or above the budget n_timesteps=200"),
+        (("seeds: [0]", "seeds: 0"), r"seeds: 0 is not a non-empty list \(e.g. seeds: \[0, 1, 2\]\)"),
+        (("seeds: [0]", "seeds: [0, 0]"), r"seeds: \[0, 0\] repeats a seed"),
+        (("seeds: [0]", "seeds: [a]"), r"seeds: 'a' is not an integer"),
+        (("tasks: [Pendulum-v1]", "tasks: Pendulum-v1"), r"tasks: 'Pendulum-v1' is not a non-empty list"),
+        (("n_timesteps: 200", "n_timesteps: abc"), r"n_timesteps: 'abc' is not an integer"),
+        (("eval_freq: 100", "eval_freq: 300"), r"eval_freq=300 is above the budget n_timesteps=200"),
+        (("eval_episodes: 1", "eval_episodes: 0"), r"eval_episodes=0 is out of range: it must be an integer >= 1"),
+        (
+            ("  ensemble_mean: {algo: serasac, target_aggregation: mean}", "  serasac: {target_aggregation: mean}"),
+            r"line 4: the key 'serasac' is given twice",
+        ),
     ],
 )
 def test_bad_grids_are_refused_before_any_run(tmp_path, replace, message):

@@ -124,7 +124,7 @@ def test_policy_follows_the_task():
 
 def test_hyperparameters_come_from_the_zoo_files():
     # This package's file for its algorithms, rl-zoo3's own for the zoo's
-    spec = runs.make_spec("serasac", "serasac", "HalfCheetah-v5", 0, 1000)
+    spec = runs.make_spec("serasac", "serasac", "HalfCheetah-v5", 0, 20000)
     assert spec.hyperparams["learning_starts"] == 10000 and spec.hyperparams["critic_lr_max"] == 5e-4
     assert spec.hyperparams_source.endswith("sb3_sera/hyperparams/serasac.yml:HalfCheetah-v5")
     sac = runs.make_spec("sac", "sac", "Pendulum-v1", 0, 1000, {"batch_size": 64})

@@ -1,14 +1,63 @@
-"""Both notebooks, executed end to end at a tiny budget (SB3_SERA_NOTEBOOK_STEPS)."""
+"""The notebooks: opened on a ledger (the default, no training), trained at a tiny budget, and stored with outputs."""
 
+import json
 from pathlib import Path
 
 import nbformat
+import numpy as np
 import pytest
+import yaml
 from nbclient import NotebookClient
 
+from sb3_sera.common.callbacks import BIAS_FILE, DIAGNOSTICS_FILE
+
 NOTEBOOKS = sorted((Path(__file__).parents[1] / "notebooks").glob("*.ipynb"))
-# Each notebook's run folder under SB3_SERA_NOTEBOOK_OUT
+# Each notebook's run folder under SB3_SERA_NOTEBOOK_OUT, and the study it reads from the ledger
 RUN_FOLDERS = {"serasac_vs_sac": "single_agent", "serasac_vs_masac_multiagent": "multi_agent"}
+STUDIES = {
+    "serasac_vs_sac": ("HalfCheetah-v5", ("serasac", "sac"), 5),
+    "serasac_vs_masac_multiagent": ("sb3_sera/HalfCheetah-6x1-v0", ("serasac", "masac"), 5),
+}
+
+
+def execute(path: Path, cwd: Path, monkeypatch, **env: str) -> nbformat.NotebookNode:
+    for key, value in {"MPLBACKEND": "Agg", **env}.items():
+        monkeypatch.setenv(key, value)
+    notebook = nbformat.read(path, as_version=4)
+    NotebookClient(notebook, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(cwd)}}).execute()
+    return notebook
+
+
+def outputs_of(notebook: nbformat.NotebookNode) -> tuple[str, int]:
+    """The notebook's text and Markdown outputs, and how many images it shows."""
+    outputs = [output for cell in notebook.cells for output in cell.get("outputs", [])]
+    text = "".join(output.get("text", "") + output.get("data", {}).get("text/markdown", "") for output in outputs)
+    return text, sum("image/png" in output.get("data", {}) for output in outputs)
+
+
+def ledger_run(ledger: Path, variant: str, env_id: str, seed: int, n_critics: int) -> None:
+    """A finished 50K-step study run's records, as the ledger keeps them."""
+    name = env_id.replace("/", "-")
+    folder = ledger / variant / f"{name}_{seed + 1}"
+    (folder / name).mkdir(parents=True)
+    args = {"algo": variant, "variant": variant, "env": env_id, "seed": seed, "n_timesteps": 50000, "git_commit": "0" * 40}
+    (folder / name / "args.yml").write_text(yaml.safe_dump(args))
+    (folder / name / "config.yml").write_text(yaml.safe_dump({"n_timesteps": 50000, "learning_starts": 10000}))
+    steps = np.array([10000, 30000, 50000])
+    rng = np.random.default_rng(seed)
+    returns = np.array([0.0, 1000.0, 2000.0]) + 100 * seed
+    np.savez(folder / "evaluations.npz", timesteps=steps, results=returns[:, None] + rng.normal(size=(3, 2)))
+    np.savez(folder / BIAS_FILE, timesteps=steps, values=np.full((3, 2), 50.0), discounted_returns=rng.normal(40, 5, (3, 2)))
+    matrix = np.full((n_critics, n_critics), 0.6) + 0.4 * np.eye(n_critics)
+    diagnostics = {
+        "timesteps": steps,
+        "td_target_var": np.array([1.0, 40.0, 90.0]),
+        "td_target_mean": np.array([1.0, 20.0, 30.0]),
+        **{key: np.full(3, 0.6) for key in ("critic_corr", "td_error_corr", "mc_error_corr")},
+        **{key: np.stack([matrix] * 3) for key in ("critic_corr_matrix", "td_error_corr_matrix", "mc_error_corr_matrix")},
+    }
+    np.savez(folder / DIAGNOSTICS_FILE, **diagnostics)
+    (folder / "result.json").write_text(json.dumps({"wall_time_s": 900.0}))
 
 
 def test_there_are_two_notebooks():
@@ -16,22 +65,50 @@ def test_there_are_two_notebooks():
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda path: path.stem)
-def test_notebook_runs(path, tmp_path, monkeypatch):
-    monkeypatch.setenv("SB3_SERA_NOTEBOOK_STEPS", "300")
-    monkeypatch.setenv("SB3_SERA_NOTEBOOK_OUT", str(tmp_path))
-    monkeypatch.setenv("MPLBACKEND", "Agg")
-    notebook = nbformat.read(path, as_version=4)
-    NotebookClient(notebook, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}}).execute()
-    outputs = "".join(
-        output.get("text", "") + output.get("data", {}).get("text/markdown", "")
-        for cell in notebook.cells
-        for output in cell.get("outputs", [])
+def test_notebook_opens_on_the_ledger_without_training(path, tmp_path, monkeypatch):
+    env_id, variants, n_critics = STUDIES[path.stem]
+    ledger = tmp_path / "ledger"
+    for variant in variants:
+        for seed in range(3):
+            ledger_run(ledger, variant, env_id, seed, n_critics if variant == "serasac" else 2)
+    cwd = tmp_path / "cwd"
+    cwd.mkdir()
+    notebook = execute(path, cwd, monkeypatch, SB3_SERA_LEDGER=str(ledger))
+    text, images = outputs_of(notebook)
+    assert f"6 runs of {env_id} at 50,000 steps" in text
+    assert "final return IQM [95% CI]" in text and "| serasac | 3 |" in text
+    # Curves, bias, AUC, diagnostics and correlation matrices, nothing trained or written beside the notebook
+    assert images == 5
+    assert not list(cwd.iterdir()) and not list(ledger.rglob("*.zip"))
+
+
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda path: path.stem)
+def test_notebook_trains_when_asked(path, tmp_path, monkeypatch):
+    notebook = execute(
+        path,
+        tmp_path,
+        monkeypatch,
+        SB3_SERA_NOTEBOOK_TRAIN="1",
+        SB3_SERA_NOTEBOOK_STEPS="300",
+        SB3_SERA_NOTEBOOK_OUT=str(tmp_path),
     )
-    assert "final return IQM [95% CI]" in outputs and "normalized AUC" in outputs
+    text, images = outputs_of(notebook)
+    assert "final return IQM [95% CI]" in text and "normalized AUC" in text
     # the report it wrote and the figures it showed: learning curves, initial-state bias, diagnostics, correlations
     report = tmp_path / RUN_FOLDERS[path.stem] / "reports" / "notebook_1"
     assert (report / "report.md").exists()
-    shown = [output for cell in notebook.cells for output in cell.get("outputs", []) if "image/png" in output.get("data", {})]
-    assert len(shown) >= 4
+    assert images >= 4
     for figure in ("curves", "bias", "diagnostics", "correlations"):
         assert len(list(report.glob(f"*_300_{figure}.png"))) == 1
+
+
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda path: path.stem)
+def test_notebooks_are_stored_with_their_outputs(path):
+    # A reader sees the ledger's figures on the stored notebook without running anything
+    notebook = nbformat.read(path, as_version=4)
+    code = [cell for cell in notebook.cells if cell.cell_type == "code"]
+    assert all(cell.get("execution_count") for cell in code)
+    text, images = outputs_of(notebook)
+    assert " runs of " in text
+    if not text.startswith("0 runs"):
+        assert images >= 3

@@ -5,7 +5,6 @@ import json
 import numpy as np
 import pytest
 import yaml
-from rliable import library as rly
 from rliable import metrics
 from scipy import stats as scipy_stats
 
@@ -98,16 +97,18 @@ def test_runs_of_other_budgets_or_settings_are_never_averaged(tmp_path):
     # AUC (0, 3000, 5000) -> 2750 and (0, 3000, 6000) -> 3000; bias 4 and 2 -> 3; IQM of two values is their mean
     row = table_row(report, "serasac (batch_size=256)")
     assert row[1] == "2"
-    assert row[2].startswith("5500.0 [")
+    assert row[2] == "5500.0† (n < 3: no interval)"
     assert row[3] == "5500.0 ± 707.1"
     assert row[4] == "5520 ± 711"
-    assert row[5].startswith("2875.0 [")
+    assert row[5] == "2875.0† (n < 3: no interval)"
     assert row[9] == "3.0"
     assert table_row(report, "serasac (batch_size=64)")[3] == "200.0 ± n/a"
-    # Two serasac groups at 3,000 steps: nothing is compared against one of them
-    assert table_row(report, "masac")[6:9] == ["", "", ""]
-    assert "serasac has several settings here, so no row is compared against it." in report
-    assert table_row(report, "serasac")[2] == "20.0 [20.0, 20.0]"  # the 600-step run alone
+    # Two serasac groups at 3,000 steps: rows are compared against the one of most runs, and with two runs a side
+    # neither P(improvement) nor a percentage is printed
+    masac = table_row(report, "masac")
+    assert masac[6] == "n < 3" and masac[8] == "n < 3" and float(masac[7]) > 0
+    assert "serasac has 2 settings here: every row is compared against serasac (batch_size=256)." in report
+    assert table_row(report, "serasac")[2] == "20.0† (n < 3: no interval)"  # the 600-step run alone
 
 
 def test_reference_comparisons_by_hand_and_by_rliable(tmp_path):
@@ -124,24 +125,15 @@ def test_reference_comparisons_by_hand_and_by_rliable(tmp_path):
     # P(serasac > masac) by hand: 8 of the 9 pairs favour serasac (5500 < 5800, 5000 < 5800, 6000 > 5800...)
     wins = sum(float(x > y) + 0.5 * float(x == y) for x in serasac for y in masac) / 9
     assert wins == pytest.approx(7 / 9)
-    np.random.seed(stats.BOOTSTRAP_SEED)  # rliable resamples with numpy's global generator
-    _, poi_intervals = rly.get_interval_estimates(
-        {"pair": (serasac[:, None], masac[:, None])},
-        metrics.probability_of_improvement,
-        reps=REPS,
-    )
-    low, high = np.ravel(poi_intervals["pair"])
+    # The interval is the package's stratified bootstrap (checked against rliable's in test_stats)
+    _, low, high = stats.probability_of_improvement(serasac[:, None], masac[:, None], REPS)
     assert row[6] == f"{wins:.2f} [{low:.2f}, {high:.2f}]"
     assert row[7] == f"{scipy_stats.ttest_ind(serasac, masac, equal_var=False).pvalue:.3f}"
     assert row[8] == f"{(serasac.mean() - masac.mean()) / masac.mean() * 100:+.1f}"
-    # IQM and its interval as rliable computes them
-    np.random.seed(stats.BOOTSTRAP_SEED)
-    points, intervals = rly.get_interval_estimates(
-        {"x": serasac[:, None]},
-        lambda scores: np.array([metrics.aggregate_iqm(scores)]),
-        reps=REPS,
-    )
-    assert table_row(report, "serasac")[2] == f"{points['x'][0]:.1f} [{intervals['x'][0][0]:.1f}, {intervals['x'][1][0]:.1f}]"
+    # IQM (three runs: the mean, marked) and its interval
+    point, low, high = (v[0] for v in stats.iqm_interval(serasac[:, None], REPS))
+    assert point == pytest.approx(metrics.aggregate_iqm(serasac[:, None]))
+    assert table_row(report, "serasac")[2] == f"{point:.1f}† [{low:.1f}, {high:.1f}]"
 
 
 def test_iqm_matches_rliable_on_curves():
@@ -208,9 +200,9 @@ def test_paper_figures_from_a_tiny_fixture(tmp_path):
         assert f"({stem}_{figure}.png)" in report
     assert "Correlation matrices at the evaluation nearest 2,000 steps" in report
     # Two task sections: scores aggregated over tasks for the variant present in both, with a performance profile
-    assert "## Across tasks" in report and "| serasac | 2 x 2 | " in report
-    assert "Left out (not in every section with one settings group and equal run counts): sera_nolr" in report
-    assert (out / "performance_profiles.png").stat().st_size > 10_000
+    assert "## Across tasks, 3,000 steps" in report and "| serasac | 2 x 2 | " in report
+    assert "Left out (not in every task with one settings group and equal run counts): sera_nolr" in report
+    assert (out / "performance_profiles_3000.png").stat().st_size > 10_000
 
 
 def test_report_refuses_to_overwrite_and_needs_runs(tmp_path, capsys):
@@ -223,5 +215,79 @@ def test_report_refuses_to_overwrite_and_needs_runs(tmp_path, capsys):
     expected = f"{tmp_path / 'out'} already holds a report.md: choose another --out, or pass --overwrite to replace it"
     assert error.strip() == f"sb3-sera report: error: {expected}"
     main(["report", str(tmp_path / "runs"), "--out", str(tmp_path / "out"), "--overwrite", "--reps", str(REPS)])
+    (tmp_path / "empty").mkdir()
     with pytest.raises(ValueError, match="no finished runs"):
         report_roots([tmp_path / "empty"], tmp_path / "out2")
+    with pytest.raises(FileNotFoundError, match=f"no such folder: {tmp_path / 'missing'}"):
+        report_roots([tmp_path / "missing"], tmp_path / "out2")
+
+
+def test_normalized_scores_use_fixed_references(tmp_path):
+    # HalfCheetah 6x1: 0 at the paper's lowest column (MAPPO 3623), 1 at SERA (5520); HalfCheetah-v5: ACE 3923, SERA 6056
+    for seed, (multi, single) in enumerate([(3623.0, 3923.0), (5520.0, 6056.0), (4571.5, 4989.5)]):
+        fake_run(tmp_path / "runs", "serasac", seed + 1, seed, [0.0, 1.0, multi])
+        fake_run(tmp_path / "runs", "serasac", seed + 1, seed, [0.0, 1.0, single], env_id="HalfCheetah-v5")
+    report = report_roots([tmp_path / "runs"], tmp_path / "report", reps=REPS).read_text()
+    assert "| serasac | 3 x 2 | 0.50 [" in report
+    # Adding a variant changes no score
+    for seed in range(3):
+        fake_run(tmp_path / "runs", "masac", seed + 1, seed, [0.0, 1.0, 100.0 * seed])
+    again = report_roots([tmp_path / "runs"], tmp_path / "report", overwrite=True, reps=REPS).read_text()
+    assert "| serasac | 3 x 2 | 0.50 [" in again
+
+
+def test_runs_evaluated_differently_are_never_pooled(tmp_path):
+    for seed in range(3):
+        folder = fake_run(tmp_path / "runs", "serasac", seed + 1, seed, [0.0, 1.0, 10.0])
+        args_file = folder / TASK.replace("/", "-") / "args.yml"
+        args = yaml.safe_load(args_file.read_text())
+        args_file.write_text(yaml.safe_dump({**args, "eval_freq": 1000 if seed < 2 else 500, "eval_episodes": 5}))
+    groups = group_runs(load_runs([tmp_path / "runs"])[0])
+    assert [(g.label, len(g.runs)) for g in groups] == [("serasac (eval_freq=1000)", 2), ("serasac (eval_freq=500)", 1)]
+
+
+def test_settings_a_run_left_unset_show_the_algorithms_default(tmp_path):
+    fake_run(tmp_path / "runs", "serasac", 1, 0, [0.0, 1.0, 2.0], hyperparams={"batch_size": 256, "sera_alpha": 0.3})
+    fake_run(tmp_path / "runs", "serasac", 2, 1, [0.0, 1.0, 2.0], hyperparams={"batch_size": 256})
+    labels = [g.label for g in group_runs(load_runs([tmp_path / "runs"])[0])]
+    assert labels == ["serasac (sera_alpha=0.3)", "serasac (sera_alpha=0.5 (default))"]
+
+
+@pytest.mark.parametrize(
+    ("damage", "reason"),
+    [
+        (lambda f: (f / TASK.replace("/", "-") / "config.yml").write_text("a: [1"), "unreadable record"),
+        (lambda f: (f / TASK.replace("/", "-") / "config.yml").write_text("- 1\n- 2\n"), "config.yml is not a mapping"),
+        (lambda f: (f / TASK.replace("/", "-") / "config.yml").write_text(""), "config.yml is empty"),
+        (lambda f: (f / TASK.replace("/", "-") / "args.yml").write_text("algo: serasac\nenv: x\n"), "args.yml has no seed"),
+        (lambda f: (f / "evaluations.npz").write_bytes((f / "evaluations.npz").read_bytes()[:50]), "unreadable evaluations"),
+        (lambda f: (f / "result.json").write_text(""), "unreadable result.json"),
+    ],
+    ids=["invalid-yaml", "list-config", "empty-config", "no-seed", "truncated-npz", "empty-result"],
+)
+def test_damaged_records_are_skipped_with_their_reason(tmp_path, damage, reason):
+    fake_run(tmp_path / "runs", "serasac", 1, 0, [0.0, 1.0, 2.0])
+    damage(fake_run(tmp_path / "runs", "serasac", 2, 1, [0.0, 1.0, 3.0]))
+    runs, skipped = load_runs([tmp_path / "runs"])
+    assert [run.seed for run in runs] == [0]
+    assert len(skipped) == 1 and skipped[0].folder.endswith("_2") and reason in skipped[0].reason
+    # The report goes on with the rest and lists the damaged run
+    report = report_roots([tmp_path / "runs"], tmp_path / "report", reps=REPS).read_text()
+    assert "## Left out" in report and reason in report
+
+
+def test_runs_nested_deeper_than_the_root_are_found(tmp_path):
+    fake_run(tmp_path / "logs" / "compare", "serasac", 1, 0, [0.0, 1.0, 2.0])
+    runs, _ = load_runs([tmp_path / "logs"])
+    assert len(runs) == 1
+
+
+def test_table_and_figure_intervals_are_computed_once(tmp_path):
+    finals = [5000.0, 6000.0, 5500.0, 4000.0]
+    for seed, final in enumerate(finals):
+        fake_run(tmp_path / "runs", "serasac", seed + 1, seed, [0.0, 1.0, final])
+    # The curve's last point resamples the same runs with the same draws as the table's final return
+    scores = np.array([[0.0, 1.0, final] for final in finals])[:, None, :]
+    _, low, high = stats.iqm_interval(scores, REPS)
+    _, table_low, table_high = stats.iqm_interval(np.array(finals)[:, None], REPS)
+    assert (low[-1], high[-1]) == (table_low[0], table_high[0])

@@ -56,3 +56,44 @@ def test_iqm_by_hand():
 def test_min_max_normalized():
     np.testing.assert_allclose(min_max_normalized(np.array([-10.0, 0.0, 10.0]), -10.0, 10.0), [0.0, 0.5, 1.0])
     np.testing.assert_allclose(min_max_normalized(np.array([3.0]), 3.0, 3.0), [0.0])
+
+
+def _rliable(func, *args, **kwargs):
+    """rliable's bootstrap, which draws from numpy's global generator."""
+    np.random.seed(0)
+    return func(*args, **kwargs)
+
+
+def test_vectorized_bootstraps_agree_with_rliable():
+    from rliable import library as rly
+    from rliable import metrics
+
+    from sb3_sera.experiments.stats import iqm_interval, performance_profile, probability_of_improvement
+
+    rng = np.random.default_rng(1)
+    reps = 4000
+    # IQM over runs and tasks, and per point of a curve: the same bounds up to the bootstraps' own sampling error
+    for scores in (rng.normal(size=(10, 3)), rng.normal(size=(6, 1, 5))):
+        point, low, high = iqm_interval(scores, reps=reps)
+        func = (
+            (lambda s: np.array([metrics.aggregate_iqm(s[..., i]) for i in range(s.shape[-1])]))
+            if scores.ndim == 3
+            else (lambda s: np.array([metrics.aggregate_iqm(s)]))
+        )
+        points, intervals = _rliable(rly.get_interval_estimates, {"x": scores}, func, reps=reps)
+        np.testing.assert_allclose(point, points["x"])
+        spread = np.ptp(scores)
+        np.testing.assert_allclose(low, intervals["x"][0], atol=0.05 * spread)
+        np.testing.assert_allclose(high, intervals["x"][1], atol=0.05 * spread)
+    # P(X > Y), X's and Y's runs resampled apart
+    x, y = rng.normal(0.5, 1.0, size=(8, 2)), rng.normal(size=(6, 2))
+    point, low, high = probability_of_improvement(x, y, reps=reps)
+    points, intervals = _rliable(rly.get_interval_estimates, {"p": (x, y)}, metrics.probability_of_improvement, reps=reps)
+    assert point == pytest.approx(float(points["p"]))
+    np.testing.assert_allclose([low, high], np.ravel(intervals["p"]), atol=0.03)
+    # Performance profiles: fraction of runs above each threshold, with bands
+    thresholds = np.linspace(-2, 2, 9)
+    profiles, bands = performance_profile({"x": x}, thresholds, reps=reps)
+    expected_profiles, expected_bands = _rliable(rly.create_performance_profile, {"x": x}, thresholds, reps=reps)
+    np.testing.assert_allclose(profiles["x"], expected_profiles["x"])
+    np.testing.assert_allclose(bands["x"], expected_bands["x"], atol=0.07)

@@ -30,6 +30,78 @@ from sb3_sera.experiments.runs import RunResult, RunSpec, algorithm_classes, che
 GRID_KEYS = {"algorithms", "tasks", "seeds", "n_timesteps", "eval_freq", "eval_episodes", "hyperparams"}
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """Safe YAML loading that refuses a key given twice in one mapping (YAML would keep the last silently)."""
+
+
+def _unique_mapping(loader: yaml.SafeLoader, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+    seen: set[Any] = set()
+    for key_node, _ in node.value:
+        key = loader.construct_object(key_node, deep=deep)
+        if key in seen:
+            raise ValueError(f"line {key_node.start_mark.line + 1}: the key {key!r} is given twice")
+        seen.add(key)
+    return loader.construct_mapping(node, deep=deep)
+
+
+_UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _unique_mapping)
+
+
+def _integer(path: str | Path, key: str, value: Any) -> int:
+    """``value`` as an integer (``3e5`` and ``300000.0`` included), else ``ValueError`` naming the key."""
+    if isinstance(value, bool) or not isinstance(value, int | float) or float(value) != int(value):
+        raise ValueError(f"{path}: {key}: {value!r} is not an integer")
+    return int(value)
+
+
+def read_grid(path: str | Path) -> dict[str, Any]:
+    """The grid file's mapping, its keys, their types and its tasks checked (``ValueError`` naming the key)."""
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"{path}: no such grid file")
+    try:
+        grid = yaml.load(Path(path).read_text(), Loader=_UniqueKeyLoader)
+    except ValueError as error:
+        raise ValueError(f"{path}: {error}") from None
+    if not isinstance(grid, dict):
+        raise ValueError(f"{path}: a grid file is a mapping with keys {sorted(GRID_KEYS)}")
+    unknown_keys = set(grid) - GRID_KEYS
+    if unknown_keys:
+        raise ValueError(f"{path}: unknown key(s) {sorted(unknown_keys)}; allowed: {sorted(GRID_KEYS)}")
+    missing = {"algorithms", "tasks", "seeds", "n_timesteps"} - set(grid)
+    if missing:
+        raise ValueError(f"{path}: missing key(s) {sorted(missing)}")
+    for key, kind in (("algorithms", dict), ("tasks", list), ("seeds", list)):
+        if not isinstance(grid[key], kind) or not grid[key]:
+            example = {"algorithms": "{serasac: {}, sac: {}}", "tasks": "[HalfCheetah-v5]", "seeds": "[0, 1, 2]"}[key]
+            raise ValueError(f"{path}: {key}: {grid[key]!r} is not a non-empty {kind.__name__} (e.g. {key}: {example})")
+    for task in grid["tasks"]:
+        if not isinstance(task, str):
+            raise ValueError(f"{path}: tasks: {task!r} is not a Gymnasium id")
+        try:
+            check_task(task)
+        except ValueError as error:
+            raise ValueError(f"{path}: {error}") from None
+    if not isinstance(grid.get("hyperparams") or {}, dict):
+        raise ValueError(f"{path}: hyperparams: {grid['hyperparams']!r} is not a mapping of hyperparameters")
+    return grid
+
+
+def _variants(path: str | Path, grid: dict[str, Any]) -> dict[str, tuple[str, dict[str, Any]]]:
+    """Each variant's algorithm and overrides (the grid's ``hyperparams``, then the variant's own values)."""
+    classes = algorithm_classes()
+    common = grid.get("hyperparams") or {}
+    variants: dict[str, tuple[str, dict[str, Any]]] = {}
+    for name, entry in grid["algorithms"].items():
+        if entry is not None and not isinstance(entry, dict):
+            raise ValueError(f"{path}: variant {name!r}: {entry!r} is not a mapping (e.g. {name}: {{algo: serasac}})")
+        params = dict(entry or {})
+        algo = params.pop("algo", name)
+        if algo not in classes:
+            raise ValueError(f"{path}: variant {name!r} names unknown algorithm {algo!r}; known: {sorted(classes)}")
+        variants[name] = (algo, {**common, **params})
+    return variants
+
+
 def load_grid(path: str | Path, num_threads: int | None = 1, device: str = "auto") -> list[RunSpec]:
     """
     Read and check a grid file; raise ``ValueError`` naming any unknown key, algorithm, task or hyperparameter
@@ -40,38 +112,31 @@ def load_grid(path: str | Path, num_threads: int | None = 1, device: str = "auto
     :return: the runs, seed by seed, then task by task, then variant by variant: a grid stopped part way has
         every variant at its first seeds
     """
-    grid = yaml.safe_load(Path(path).read_text())
-    if not isinstance(grid, dict):
-        raise ValueError(f"{path}: a grid file is a mapping with keys {sorted(GRID_KEYS)}")
-    unknown_keys = set(grid) - GRID_KEYS
-    if unknown_keys:
-        raise ValueError(f"{path}: unknown key(s) {sorted(unknown_keys)}; allowed: {sorted(GRID_KEYS)}")
-    missing = {"algorithms", "tasks", "seeds", "n_timesteps"} - set(grid)
-    if missing:
-        raise ValueError(f"{path}: missing key(s) {sorted(missing)}")
-    classes = algorithm_classes()
-    common: dict[str, Any] = grid.get("hyperparams") or {}
-    variants: dict[str, tuple[str, dict[str, Any]]] = {}
-    for name, entry in (grid["algorithms"] or {}).items():
-        params = dict(entry or {})
-        algo = params.pop("algo", name)
-        if algo not in classes:
-            raise ValueError(f"{path}: variant {name!r} names unknown algorithm {algo!r}; known: {sorted(classes)}")
-        variants[name] = (algo, {**common, **params})
-    for task in grid["tasks"]:
-        try:
-            check_task(task)
-        except ValueError as error:
-            raise ValueError(f"{path}: {error}") from None
-    n_timesteps = int(grid["n_timesteps"])
-    eval_freq = int(grid.get("eval_freq", max(n_timesteps // 10, 1)))
-    episodes = int(grid.get("eval_episodes", 5))
+    grid = read_grid(path)
+    seeds = [_integer(path, "seeds", seed) for seed in grid["seeds"]]
+    if len(set(seeds)) != len(seeds):
+        raise ValueError(f"{path}: seeds: {grid['seeds']} repeats a seed")
+    variants = _variants(path, grid)
+    n_timesteps = _integer(path, "n_timesteps", grid["n_timesteps"])
+    eval_freq = _integer(path, "eval_freq", grid.get("eval_freq", max(n_timesteps // 10, 1)))
+    episodes = _integer(path, "eval_episodes", grid.get("eval_episodes", 5))
     specs = []
-    for seed in grid["seeds"]:
+    for seed in seeds:
         for task in grid["tasks"]:
             for name, (algo, overrides) in variants.items():
                 try:
-                    spec = make_spec(name, algo, task, seed, n_timesteps, overrides, eval_freq, episodes, num_threads, device)
+                    spec = make_spec(
+                        name,
+                        algo,
+                        task,
+                        seed,
+                        n_timesteps,
+                        overrides=overrides,
+                        eval_freq=eval_freq,
+                        n_eval_episodes=episodes,
+                        num_threads=num_threads,
+                        device=device,
+                    )
                 except ValueError as error:
                     raise ValueError(f"{path}: variant {error}") from None
                 specs.append(spec)

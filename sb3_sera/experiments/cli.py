@@ -8,7 +8,7 @@ from pathlib import Path
 
 import yaml
 
-from sb3_sera.experiments import bench, compare, report, stats, zoo
+from sb3_sera.experiments import bench, compare, ledger, report, stats, zoo
 from sb3_sera.experiments.runs import RunResult, default_threads, env_name
 
 
@@ -51,6 +51,20 @@ def _report(args: argparse.Namespace) -> None:
     path = report.report_roots(args.roots, args.out, overwrite=args.overwrite, reps=args.reps, matrix_step=args.matrix_step)
     print(path.read_text())
     print(f"\nReport: {path}")
+
+
+def _ledger_add(args: argparse.Namespace) -> None:
+    outcome = ledger.add_runs(args.sources, args.ledger)
+    for folder in outcome.added:
+        print(f"added {folder}")
+    for skipped in outcome.refused:
+        print(f"refused {skipped.folder}: {skipped.reason}")
+    print(f"{len(outcome.added)} run(s) added to {args.ledger}, {len(outcome.refused)} refused")
+
+
+def _ledger_report(args: argparse.Namespace) -> None:
+    path, readme = ledger.write_results(args.ledger, args.docs, args.readme, reps=args.reps)
+    print(f"Report: {path}\nResults block rewritten in {readme}")
 
 
 def _add_run_flags(parser: argparse.ArgumentParser) -> None:
@@ -122,6 +136,25 @@ def build_parser() -> argparse.ArgumentParser:
         "--matrix-step", type=int, default=None, help="step of the correlation matrices (default: the last evaluation)"
     )
     rep.set_defaults(func=_report)
+    led = commands.add_parser(
+        "ledger",
+        help="the committed results ledger (results/): add finished runs, regenerate the README's results from it",
+        description=ledger.__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    led_commands = led.add_subparsers(dest="ledger_command", required=True)
+    led_add = led_commands.add_parser("add", help="copy finished runs' records from bench/compare outputs into the ledger")
+    led_add.add_argument("sources", nargs="+", help="folders holding <variant>/<env_name>_<id>/ run folders")
+    led_add.add_argument("--ledger", default=ledger.LEDGER_DIR, help="the ledger's folder")
+    led_add.set_defaults(func=_ledger_add)
+    led_report = led_commands.add_parser(
+        "report", help="regenerate docs/results/ and the README's results block from the ledger alone"
+    )
+    led_report.add_argument("--ledger", default=ledger.LEDGER_DIR, help="the ledger's folder")
+    led_report.add_argument("--docs", default=ledger.DOCS_DIR, help="folder of the full report and its figures")
+    led_report.add_argument("--readme", default="README.md", help="the README whose results block is rewritten")
+    led_report.add_argument("--reps", type=int, default=ledger.LEDGER_REPS, help="bootstrap resamples of every interval")
+    led_report.set_defaults(func=_ledger_report)
     for command in zoo.ZOO_COMMANDS:
         # Listed for --help; main() hands their arguments to rl-zoo3 untouched
         commands.add_parser(command, add_help=False, help=f"rl-zoo3's {command} with sb3-sera's algorithms (zoo flags)")

@@ -23,11 +23,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 from numpy.typing import ArrayLike
 
 from sb3_sera.common.callbacks import DIAGNOSTICS_FILE
 from sb3_sera.experiments import stats
-from sb3_sera.experiments.runs import RESULT_FILE, RunResult, env_name, load_result, read_record
+from sb3_sera.experiments.claims import claims_section
+from sb3_sera.experiments.runs import NPZ_ERRORS, RESULT_FILE, RunResult, env_name, load_result, read_record
 
 #: Paper Table 1 (multi-agent, 300K steps) and Table 2 (single-agent): (mean, std) of the team return
 PAPER_RESULTS: dict[str, dict[str, tuple[float, float]]] = {
@@ -63,8 +65,8 @@ PAPER_NAMES = {
 REFERENCE = "serasac"
 #: Variants in the order tables list them and colours are given (others follow, alphabetically)
 VARIANT_ORDER = (
-    "serasac", "sera_nolr", "sera_median", "ensemble_mean", "sac", "masac", "sunrise", "ace", "iet", "matd3", "maddpg",
-    "mappo",
+    "serasac", "sera_nolr", "sera_nolr_matched", "sera_median", "ensemble_mean", "sac", "masac", "sunrise", "ace", "iet",
+    "matd3", "maddpg", "mappo",
 )  # fmt: skip
 #: Points of the common grid onto which curves evaluated at different steps are interpolated
 GRID_POINTS = 50
@@ -91,6 +93,8 @@ class RunGroup:
     runs: list[RunResult] = field(default_factory=list)
     #: The variant's name, with the settings that set this group apart from the variant's other groups
     label: str = ""
+    #: The algorithm the variant runs
+    algo: str = ""
 
     @property
     def finals(self) -> np.ndarray:
@@ -110,28 +114,54 @@ def is_finished(folder: Path, args: dict[str, Any]) -> bool:
     return "variant" not in args and (folder / f"{env_name(str(args.get('env', '')))}.zip").exists()
 
 
+def run_folders(root: Path) -> list[Path]:
+    """
+    The run folders at any depth under ``root``: folders holding ``evaluations.npz`` or a ``<env_name>/args.yml``
+    record (so ``make demo``'s ``logs/compare`` and a zoo's ``logs/<algo>/<env>_<id>`` are found alike); hidden
+    folders (an interrupted ledger copy) are not.
+    """
+    found = {path.parent for path in root.rglob("evaluations.npz")} | {path.parent.parent for path in root.rglob("args.yml")}
+    return sorted(
+        folder
+        for folder in found
+        if folder.is_dir() and not any(part.startswith(".") for part in folder.relative_to(root).parts)
+    )
+
+
 def load_runs(roots: Sequence[str | Path]) -> tuple[list[RunResult], list[Skipped]]:
     """
-    Every finished run under the roots (``<root>/<variant>/<env_name>_<id>/``), and the folders left out with why:
-    no record of the run's settings, no evaluations, or not finished.
+    Every finished run under the roots (see :func:`run_folders`), and the folders left out with why: no record of
+    the run's settings, no evaluations, not finished, or damaged records (each named with what is wrong).
+
+    :raises FileNotFoundError: naming a root that does not exist
     """
+    missing = [str(root) for root in roots if not Path(root).is_dir()]
+    if missing:
+        raise FileNotFoundError(f"no such folder: {', '.join(missing)}")
     runs, skipped = [], []
     for root in roots:
-        for folder in sorted(path for path in Path(root).glob("*/*") if path.is_dir()):
+        for folder in run_folders(Path(root)):
             evaluated = (folder / "evaluations.npz").exists()
             records = sorted(folder.glob("*/args.yml"))
-            if not evaluated and not records:
-                continue  # not a run folder
             if not records:
                 skipped.append(
                     Skipped(str(folder), "no <env_name>/args.yml record: its seed, budget and settings are unknown")
                 )
-            elif not evaluated:
+                continue
+            if not evaluated:
                 skipped.append(Skipped(str(folder), "no evaluations.npz (train with --eval-freq)"))
-            elif not is_finished(folder, read_record(records[0])):
-                skipped.append(Skipped(str(folder), "unfinished: no result.json (compare, bench) or final model (train)"))
-            else:
+                continue
+            try:
+                args = read_record(records[0])
+                if not isinstance(args, dict):
+                    raise ValueError(f"{folder}: args.yml is not a mapping")
+                if not is_finished(folder, args):
+                    skipped.append(Skipped(str(folder), "unfinished: no result.json (compare, bench) or final model (train)"))
+                    continue
                 runs.append(load_result(folder))
+            except (ValueError, yaml.YAMLError) as error:
+                reason = " ".join(str(error).split())
+                skipped.append(Skipped(str(folder), reason.removeprefix(f"{folder}: ")))
     return runs, skipped
 
 
@@ -140,15 +170,22 @@ def variant_rank(variant: str) -> tuple[int, str]:
     return (VARIANT_ORDER.index(variant) if variant in VARIANT_ORDER else len(VARIANT_ORDER), variant)
 
 
+def run_settings(run: RunResult) -> dict[str, Any]:
+    """What sets a run's results apart beside its variant, task and budget: its hyperparameters and evaluations."""
+    evaluation = {"eval_freq": run.eval_freq, "eval_episodes": run.eval_episodes}
+    return {**run.hyperparams, **{key: value for key, value in evaluation.items() if value is not None}}
+
+
 def group_runs(runs: Sequence[RunResult]) -> list[RunGroup]:
     """
-    Runs grouped by (variant, task, budget, hyperparameters), ordered by task, budget and variant; a variant with
-    several groups in one task and budget gets labels that name the settings that differ.
+    Runs grouped by (variant, task, budget, hyperparameters and evaluation settings), ordered by task, budget and
+    variant; a variant with several groups in one task and budget gets labels that name the settings that differ.
     """
     groups: dict[tuple[str, str, int, str], RunGroup] = {}
     for run in runs:
-        key = (run.variant, run.env_id, run.n_timesteps, json.dumps(run.hyperparams, sort_keys=True, default=str))
-        group = groups.setdefault(key, RunGroup(run.variant, run.env_id, run.n_timesteps, run.hyperparams))
+        settings = run_settings(run)
+        key = (run.variant, run.env_id, run.n_timesteps, json.dumps(settings, sort_keys=True, default=str))
+        group = groups.setdefault(key, RunGroup(run.variant, run.env_id, run.n_timesteps, settings, algo=run.algo))
         group.runs.append(run)
     ordered = sorted(
         groups.values(),
@@ -165,7 +202,9 @@ def group_runs(runs: Sequence[RunResult]) -> list[RunGroup]:
         ]
         differing = differing_keys([g.hyperparams for g in siblings])
         group.label = (
-            group.variant if len(siblings) == 1 else f"{group.variant} ({settings_text(group.hyperparams, differing)})"
+            group.variant
+            if len(siblings) == 1
+            else f"{group.variant} ({settings_text(group.hyperparams, differing, group.algo)})"
         )
     return ordered
 
@@ -176,8 +215,25 @@ def differing_keys(settings: Sequence[dict[str, Any]]) -> list[str]:
     return [key for key in keys if len({json.dumps(s.get(key, "unset"), default=str) for s in settings}) > 1]
 
 
-def settings_text(hyperparams: dict[str, Any], keys: Sequence[str]) -> str:
-    return ", ".join(f"{key}={hyperparams.get(key, 'unset')}" for key in keys)
+def settings_text(hyperparams: dict[str, Any], keys: Sequence[str], algo: str = "") -> str:
+    """``key=value`` for each of ``keys``; a key the run did not set shows the algorithm's default, marked so."""
+    return ", ".join(
+        f"{key}={hyperparams[key]}" if key in hyperparams else f"{key}={algorithm_default(algo, key)} (default)"
+        for key in keys
+    )
+
+
+def algorithm_default(algo: str, key: str) -> Any:
+    """The default of ``key`` in the constructor of ``algo`` (rl-zoo3's name), or "unknown"."""
+    import inspect
+
+    from sb3_sera.experiments.runs import algorithm_classes
+
+    model_class = algorithm_classes().get(algo)
+    if model_class is None:
+        return "unknown"
+    parameter = inspect.signature(model_class).parameters.get(key)
+    return "unknown" if parameter is None or parameter.default is inspect.Parameter.empty else parameter.default
 
 
 def aligned(series: Sequence[tuple[ArrayLike, ArrayLike]]) -> tuple[np.ndarray, np.ndarray, str]:
@@ -204,18 +260,41 @@ def aligned(series: Sequence[tuple[ArrayLike, ArrayLike]]) -> tuple[np.ndarray, 
     )
 
 
+#: Runs a group needs before an interval, a probability of improvement or a percentage is printed for it
+MIN_RUNS = 3
+
+
 def iqm_cell(values: np.ndarray, reps: int) -> str:
-    """``IQM [low, high]`` of one value per run."""
+    """
+    ``IQM [low, high]`` of one value per run; with fewer than :data:`MIN_RUNS` runs no interval (a bootstrap of one
+    or two runs says nothing), and a dagger where the IQM trims nothing (n <= 3: it is the mean).
+    """
     point, low, high = (float(v[0]) for v in stats.iqm_interval(values[:, None], reps))
-    return f"{point:.1f} [{low:.1f}, {high:.1f}]"
+    mark = "†" if len(values) <= 3 else ""
+    if len(values) < MIN_RUNS:
+        return f"{point:.1f}{mark} (n < {MIN_RUNS}: no interval)"
+    return f"{point:.1f}{mark} [{low:.1f}, {high:.1f}]"
+
+
+def reference_group(groups: Sequence[RunGroup]) -> tuple[RunGroup | None, str]:
+    """
+    The group every other row is compared against: the reference variant's, or with several settings its group of
+    most runs (the first of those in table order); and a sentence saying which, when there was a choice.
+    """
+    references = [group for group in groups if group.variant == REFERENCE]
+    if not references:
+        return None, ""
+    chosen = max(references, key=lambda group: len(group.runs))
+    if len(references) == 1:
+        return chosen, ""
+    return chosen, f"{REFERENCE} has {len(references)} settings here: every row is compared against {chosen.label}."
 
 
 def section_table(groups: Sequence[RunGroup], reps: int) -> list[str]:
     """One task and budget: a row per group (see the module's docstring), and what its columns are."""
     env_id, budget = groups[0].env_id, groups[0].n_timesteps
     paper = PAPER_RESULTS.get(env_id, {})
-    references = [group for group in groups if group.variant == REFERENCE]
-    reference = references[0] if len(references) == 1 else None
+    reference, reference_note = reference_group(groups)
     lines = [
         f"| variant | n | final return IQM [95% CI] | final return mean ± std | paper at 300K (mean ± std) "
         f"| normalized AUC IQM [95% CI] | P({REFERENCE} > variant) [95% CI] | Welch p vs {REFERENCE} "
@@ -230,10 +309,14 @@ def section_table(groups: Sequence[RunGroup], reps: int) -> list[str]:
         if reference is not None and group is not reference:
             p_value = stats.welch_p_value(reference.finals, finals)
             p_cell = "" if p_value is None else f"{p_value:.3f}"
-            poi = stats.probability_of_improvement(reference.finals[:, None], finals[:, None], reps)
-            poi_cell = f"{poi[0]:.2f} [{poi[1]:.2f}, {poi[2]:.2f}]"
-            if finals.mean() != 0:
-                improvement_cell = f"{stats.improvement_percent(float(reference.finals.mean()), float(finals.mean())):+.1f}"
+            if min(len(reference.finals), len(finals)) < MIN_RUNS:
+                poi_cell = improvement_cell = f"n < {MIN_RUNS}"
+            else:
+                poi = stats.probability_of_improvement(reference.finals[:, None], finals[:, None], reps)
+                poi_cell = f"{poi[0]:.2f} [{poi[1]:.2f}, {poi[2]:.2f}]"
+                if finals.mean() != 0:
+                    improvement = stats.improvement_percent(float(reference.finals.mean()), float(finals.mean()))
+                    improvement_cell = f"{improvement:+.1f}"
         biases = [run.initial_state_bias[-1] for run in group.runs if run.initial_state_bias]
         walls = [run.wall_time_s for run in group.runs if np.isfinite(run.wall_time_s)]
         std = stats.sample_std(finals)
@@ -245,15 +328,16 @@ def section_table(groups: Sequence[RunGroup], reps: int) -> list[str]:
         )
     lines += [
         "",
-        f"n: runs (seeds) per row, {budget:,} steps each. IQM: interquartile mean over the runs; [a, b]: its {INTERVAL}, "
-        f"{reps} resamples. mean ± std: sample standard deviation (ddof 1). Normalized AUC: the area under the run's "
-        f"learning curve divided by its length in steps (its average evaluation return). P({REFERENCE} > variant): "
-        f"probability that a run of {REFERENCE} ends higher than a run of the variant, with its interval. Welch p: "
-        "two-sided Welch's t-test on the final returns. Initial-state bias: mean V(s0) minus the mean discounted "
-        "return at the last evaluation.",
+        f"n: runs (seeds) per row, {budget:,} steps each. IQM: interquartile mean over the runs (†: n <= 3, where it "
+        f"trims nothing and is the mean); [a, b]: its {INTERVAL}, {reps} resamples, printed from {MIN_RUNS} runs on. "
+        f"mean ± std: sample standard deviation (ddof 1). Normalized AUC: the area under the run's learning curve "
+        f"divided by its length in steps (its average evaluation return). P({REFERENCE} > variant): probability that a "
+        f"run of {REFERENCE} ends higher than a run of the variant, with its interval, and {REFERENCE}'s improvement in "
+        f"percent of the variant's mean, both from {MIN_RUNS} runs a side on. Welch p: two-sided Welch's t-test on the "
+        "final returns. Initial-state bias: mean V(s0) minus the mean discounted return at the last evaluation.",
     ]
-    if len(references) > 1:
-        lines += ["", f"{REFERENCE} has several settings here, so no row is compared against it."]
+    if reference_note:
+        lines += ["", reference_note]
     others = [name for name in paper if name not in {PAPER_NAMES.get(group.variant) for group in groups}]
     if others:
         lines += ["", "Paper only: " + ", ".join(f"{name} {paper[name][0]:g} ± {paper[name][1]:g}" for name in others)]
@@ -291,7 +375,8 @@ def section_notes(groups: Sequence[RunGroup], all_groups: Sequence[RunGroup]) ->
 #: The known variants' colours, the same in every report (SAC and MASAC share one: never in the same section)
 VARIANT_COLORS = {
     "serasac": "C0", "sac": "C1", "masac": "C1", "ensemble_mean": "C2", "matd3": "C3", "sera_nolr": "C4",
-    "sera_median": "C5", "sunrise": "C6", "maddpg": "C7", "ace": "C8", "iet": "C9", "mappo": "black",
+    "sera_median": "C5", "sera_nolr_matched": "olive", "sunrise": "C6", "maddpg": "C7", "ace": "C8", "iet": "C9",
+    "mappo": "black",
 }  # fmt: skip
 
 
@@ -375,20 +460,35 @@ def plot_curves(
 
 
 def load_diagnostics(run: RunResult) -> dict[str, np.ndarray] | None:
-    """A run's critic diagnostics (``critic_diagnostics.npz``, SAC family), or None."""
+    """
+    A run's critic diagnostics (``critic_diagnostics.npz``, SAC family), or None; with ``td_target_cv2``, the TD
+    target's variance over its squared mean, where the run recorded the mean.
+    """
     path = Path(run.folder) / DIAGNOSTICS_FILE
     if not path.exists():
         return None
-    with np.load(path) as records:
-        return {key: records[key] for key in records.files}
+    try:
+        with np.load(path) as records:
+            diagnostics = {key: records[key] for key in records.files}
+    except NPZ_ERRORS:
+        return None  # a damaged diagnostics record draws nothing; the run's returns are still reported
+    if "td_target_mean" in diagnostics:
+        diagnostics["td_target_cv2"] = diagnostics["td_target_var"] / diagnostics["td_target_mean"] ** 2
+    return diagnostics
 
 
 #: The diagnostics figure's panels: record key, title, y label
 DIAGNOSTIC_PANELS = (
-    ("td_target_var", "TD-target variance (Fig. 4c)", "Var_batch(y) (return units²)"),
+    ("td_target_var", "TD-target variance", "Var_batch(y) (return units²)"),
+    ("td_target_cv2", "normalised TD-target variance (Fig. 4c)", "Var_batch(y) / mean_batch(y)²"),
+    ("critic_lr", "critic learning rate (adaptive: per critic)", "learning rate (mean over critics; dotted: min, max)"),
     ("critic_corr", "critics' value correlation", "mean off-diagonal Pearson r of Q_i"),
     ("td_error_corr", "critics' TD-error correlation", "mean off-diagonal Pearson r of δ_i"),
-    ("critic_lr", "critic learning rate (adaptive: per critic)", "learning rate (mean over critics; dotted: min, max)"),
+    (
+        "mc_error_corr",
+        "critics' error correlation vs Monte Carlo returns (Fig. 5)",
+        "mean off-diagonal Pearson r of Q_i - G",
+    ),
 )
 
 
@@ -402,7 +502,8 @@ def plot_diagnostics(groups: Sequence[RunGroup], path: Path, colors: dict[str, A
     if not any(records.values()):
         return False
     plt = _pyplot()
-    fig, axes = plt.subplots(1, len(DIAGNOSTIC_PANELS), figsize=(5 * len(DIAGNOSTIC_PANELS), 4.2))
+    fig, axes_grid = plt.subplots(2, 3, figsize=(15, 8.4))
+    axes = axes_grid.ravel()
     styles = _linestyles(groups)
     for group in groups:
         runs = records[id(group)]
@@ -410,31 +511,34 @@ def plot_diagnostics(groups: Sequence[RunGroup], path: Path, colors: dict[str, A
             continue
         color = colors[group.variant]
         for ax, (key, _, _) in zip(axes, DIAGNOSTIC_PANELS, strict=True):
-            if key not in runs[0]:
+            having = [r for r in runs if key in r]
+            if not having:
                 continue
-            values = [r[key] if r[key].ndim == 1 else r[key].mean(axis=1) for r in runs]
-            _draw_band(
-                ax,
-                [(r["timesteps"], v) for r, v in zip(runs, values, strict=True)],
-                reps,
-                group.label,
-                color,
-                styles[id(group)],
-            )
-            if runs[0][key].ndim == 2:
+            # Evaluations without a value (no Monte Carlo sample kept, say) are left out of the run's curve
+            series = []
+            for r in having:
+                values = r[key] if r[key].ndim == 1 else r[key].mean(axis=1)
+                finite = np.isfinite(values)
+                if finite.any():
+                    series.append((r["timesteps"][finite], values[finite]))
+            if not series:
+                continue
+            _draw_band(ax, series, reps, group.label, color, styles[id(group)])
+            if having[0][key].ndim == 2:
                 for reduce in (np.min, np.max):
-                    grid, matrix, _ = aligned([(r["timesteps"], reduce(r[key], axis=1)) for r in runs])
+                    grid, matrix, _ = aligned([(r["timesteps"], reduce(r[key], axis=1)) for r in having])
                     ax.plot(grid, stats.iqm(matrix[:, None, :]), color=color, linestyle=":", linewidth=0.9)
     for ax, (key, title, ylabel) in zip(axes, DIAGNOSTIC_PANELS, strict=True):
         ax.set_title(title, fontsize=10)
         ax.set_xlabel("environment steps")
         ax.set_ylabel(ylabel)
-        if key == "td_target_var":
+        if key in ("td_target_var", "td_target_cv2"):
             ax.set_yscale("log")
         if ax.lines:
             ax.legend(fontsize="x-small")
     fig.suptitle(
-        "Critic diagnostics on 1024 replayed transitions at each evaluation; IQM over runs, band: 95% bootstrap CI",
+        "Critic diagnostics at each evaluation (1024 replayed transitions; Monte Carlo errors: the evaluation episodes' "
+        "steps); IQM over runs, band: 95% bootstrap CI",
         fontsize=10,
     )
     _save(fig, path)
@@ -442,52 +546,94 @@ def plot_diagnostics(groups: Sequence[RunGroup], path: Path, colors: dict[str, A
 
 
 def plot_auc_bars(groups: Sequence[RunGroup], path: Path, colors: dict[str, Any], reps: int) -> None:
-    """Normalized AUC per group (paper Fig. 4b): IQM over runs as a bar, its interval as an error bar, runs as dots."""
+    """
+    Normalized AUC per group (paper Fig. 4b): IQM over runs as a marker with its interval, runs as dots, on an axis
+    fitted to the values (not drawn from zero, so that differences between groups show whatever the sign).
+    """
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(1.6 * len(groups) + 2, 4.2))
+    fig, ax = plt.subplots(figsize=(1.6 * len(groups) + 2, 4.6))
     for index, group in enumerate(groups):
         aucs = group.aucs
         point, low, high = (value[0] for value in stats.iqm_interval(aucs[:, None], reps))
-        ax.bar(index, point, color=colors[group.variant], alpha=0.8)
-        ax.errorbar(index, point, yerr=[[point - low], [high - point]], color="black", capsize=5)
-        ax.scatter(np.full(len(aucs), index), aucs, color="black", s=10, zorder=3)
+        ax.errorbar(
+            index, point, yerr=[[point - low], [high - point]], color=colors[group.variant], marker="s", markersize=9,
+            capsize=6, linewidth=2,
+        )  # fmt: skip
+        ax.scatter(np.full(len(aucs), index + 0.15), aucs, color="black", s=12, zorder=3)
     ax.set_xticks(range(len(groups)), [f"{g.label}\n(n={len(g.runs)})" for g in groups], fontsize=8)
+    ax.set_xlim(-0.6, len(groups) - 0.4)
     ax.set_ylabel("normalized AUC (average evaluation return)")
-    ax.set_title("Normalized AUC (Fig. 4b): IQM over runs, error bar: 95% stratified-bootstrap CI, dots: runs", fontsize=9)
+    ax.grid(axis="y", alpha=0.3)
+    ax.set_title("Normalized AUC (Fig. 4b)\nsquare: IQM over runs, bar: 95% stratified-bootstrap CI, dots: runs", fontsize=9)
     _save(fig, path)
+
+
+#: The correlation matrices drawn (paper Fig. 5), one row each: record key and what it correlates
+MATRIX_ROWS = (
+    ("mc_error_corr_matrix", "errors vs Monte Carlo returns"),
+    ("td_error_corr_matrix", "TD errors δ_i"),
+    ("critic_corr_matrix", "values Q_i"),
+)
+
+
+def _off_diagonal_mean(matrix: np.ndarray) -> float:
+    return float(matrix[~np.eye(len(matrix), dtype=bool)].mean())
 
 
 def plot_correlation_matrices(groups: Sequence[RunGroup], path: Path, step: int | None) -> str | None:
     """
-    The K x K correlation matrices of the critics' TD errors and values (paper Fig. 5) of each ensemble group
-    (K >= 3) at the evaluation nearest ``step`` (None: the last), averaged over its runs.
+    The K x K correlation matrices of the critics (paper Fig. 5) of each ensemble group (K >= 3) at the evaluation
+    nearest ``step`` (None: the last). A critic's index means nothing across runs, so matrices are never averaged
+    entry by entry: each panel shows the group's median run, the one whose mean off-diagonal correlation is the
+    median of the group's.
 
     :return: a sentence saying which step was drawn, or None when no group has matrices
     """
-    panels = []
+    rows = [
+        (key, name)
+        for key, name in MATRIX_ROWS
+        if any(
+            d is not None and key in d and d[key].shape[-1] >= 3 and np.isfinite(d[key]).all()
+            for g in groups
+            for d in map(load_diagnostics, g.runs)
+        )
+    ]
+    panels: list[tuple[RunGroup, dict[str, tuple[np.ndarray, int, int, int]]]] = []
     for group in groups:
-        runs = [d for d in map(load_diagnostics, group.runs) if d is not None and d["td_error_corr_matrix"].shape[-1] >= 3]
-        if not runs:
-            continue
-        picks = [int(np.argmin(np.abs(r["timesteps"] - (r["timesteps"][-1] if step is None else step)))) for r in runs]
-        steps = sorted({int(r["timesteps"][i]) for r, i in zip(runs, picks, strict=True)})
-        matrices = {
-            key: np.mean([r[key][i] for r, i in zip(runs, picks, strict=True)], axis=0)
-            for key in ("td_error_corr_matrix", "critic_corr_matrix")
-        }
-        panels.append((group, steps, len(runs), matrices))
+        chosen: dict[str, tuple[np.ndarray, int, int, int]] = {}
+        for key, _ in rows:
+            candidates = []
+            for run in group.runs:
+                records = load_diagnostics(run)
+                if records is None or key not in records or records[key].shape[-1] < 3:
+                    continue
+                target = records["timesteps"][-1] if step is None else step
+                index = int(np.argmin(np.abs(records["timesteps"] - target)))
+                if np.isfinite(records[key][index]).all():
+                    candidates.append((records[key][index], run.seed, int(records["timesteps"][index])))
+            if candidates:
+                candidates.sort(key=lambda item: _off_diagonal_mean(item[0]))
+                matrix, seed, at = candidates[(len(candidates) - 1) // 2]
+                chosen[key] = (matrix, seed, at, len(candidates))
+        if chosen:
+            panels.append((group, chosen))
     if not panels:
         return None
     plt = _pyplot()
-    fig, axes = plt.subplots(2, len(panels), figsize=(3.4 * len(panels) + 1.5, 7), squeeze=False, layout="constrained")
-    rows = (("td_error_corr_matrix", "TD errors δ_i"), ("critic_corr_matrix", "values Q_i"))
+    fig, axes = plt.subplots(
+        len(rows), len(panels), figsize=(3.4 * len(panels) + 1.5, 3.5 * len(rows)), squeeze=False, layout="constrained"
+    )
     for row, (key, name) in enumerate(rows):
         # One colour scale per row, from its smallest off-diagonal entry to 1, so that differences show
-        off_diagonal = [m[key][~np.eye(len(m[key]), dtype=bool)] for _, _, _, m in panels]
+        off_diagonal = [chosen[key][0][~np.eye(len(chosen[key][0]), dtype=bool)] for _, chosen in panels if key in chosen]
         low = min(float(np.floor(min(values.min() for values in off_diagonal) * 20) / 20), 0.95)
         image = None
-        for column, (group, steps, n, matrices) in enumerate(panels):
-            ax, matrix = axes[row][column], matrices[key]
+        for column, (group, chosen) in enumerate(panels):
+            ax = axes[row][column]
+            if key not in chosen:
+                ax.axis("off")
+                continue
+            matrix, seed, at, n = chosen[key]
             image = ax.imshow(matrix, vmin=low, vmax=1.0, cmap="viridis")
             for (i, j), value in np.ndenumerate(matrix):
                 shade = "black" if value > low + 0.6 * (1.0 - low) else "white"
@@ -495,44 +641,71 @@ def plot_correlation_matrices(groups: Sequence[RunGroup], path: Path, step: int 
             labels = [f"Q{i}" for i in range(len(matrix))]
             ax.set_xticks(range(len(matrix)), labels, fontsize=7)
             ax.set_yticks(range(len(matrix)), labels, fontsize=7)
-            ax.set_title(f"{group.label}: {name}\nat {'/'.join(f'{s:,}' for s in steps)} steps, mean of {n} runs", fontsize=8)
-        fig.colorbar(image, ax=axes[row], shrink=0.8, label="Pearson r over 1024 replayed transitions")
-    fig.suptitle("Inter-critic correlation matrices (Fig. 5)", fontsize=10)
+            ax.set_title(
+                f"{group.label}: {name}\nseed {seed} at {at:,} steps "
+                f"(median of {n} runs, mean r {_off_diagonal_mean(matrix):.2f})",
+                fontsize=8,
+            )
+        if image is not None:
+            fig.colorbar(image, ax=axes[row], shrink=0.8, label="Pearson r")
+    fig.suptitle("Inter-critic correlation matrices (Fig. 5), one run per panel", fontsize=10)
     fig.savefig(path, dpi=110)
     plt.close(fig)
-    chosen = "the last evaluation" if step is None else f"the evaluation nearest {step:,} steps"
-    return f"Correlation matrices at {chosen}, averaged over each row's runs."
+    chosen_step = "the last evaluation" if step is None else f"the evaluation nearest {step:,} steps"
+    return (
+        f"Correlation matrices at {chosen_step}: each panel is the group's median run by mean off-diagonal r "
+        "(a critic's index means nothing across runs, so matrices are not averaged)."
+    )
 
 
-def aggregate_section(sections: Sequence[list[RunGroup]], folder: Path, colors: dict[str, Any], reps: int) -> list[str]:
+def paper_reference(env_id: str) -> tuple[float, float] | None:
     """
-    Scores aggregated over task sections: each final return min-max normalized by the lowest and highest final
-    return of any run in its section, then per variant (one settings group per section, the same number of runs
-    in each) the IQM over runs and tasks with its interval, and performance profiles.
+    Fixed reference scores of a task for normalizing across tasks: the lowest mean of the paper's columns and SERA's
+    mean at 300K (None for a task the paper does not report). Fixed, so that adding a variant changes no score.
+    """
+    paper = PAPER_RESULTS.get(env_id)
+    if not paper or "SERA" not in paper:
+        return None
+    return min(mean for mean, _ in paper.values()), paper["SERA"][0]
+
+
+def aggregate_section(
+    sections: Sequence[list[RunGroup]], folder: Path, colors: dict[str, Any], reps: int, budget: int
+) -> list[str]:
+    """
+    Scores aggregated over the task sections of one budget: each final return normalized by its task's fixed
+    reference scores (:func:`paper_reference`: 0 at the paper's lowest column, 1 at the paper's SERA), then per
+    variant (one settings group per section, the same number of runs in each) the IQM over runs and tasks with its
+    interval, and performance profiles.
     """
     scores: dict[str, list[np.ndarray]] = defaultdict(list)
     counts: dict[str, set[int]] = defaultdict(set)
-    for groups in sections:
-        finals = np.concatenate([group.finals for group in groups])
-        low, high = float(finals.min()), float(finals.max())
+    referenced = [groups for groups in sections if paper_reference(groups[0].env_id) is not None]
+    unreferenced = sorted({groups[0].env_id for groups in sections} - {groups[0].env_id for groups in referenced})
+    lines = [f"## Across tasks, {budget:,} steps", ""]
+    if unreferenced:
+        lines += [f"Left out, with no reference scores in the paper: {', '.join(unreferenced)}.", ""]
+    if len(referenced) < 2:
+        return [*lines, "Fewer than two tasks with reference scores: nothing aggregated.", ""]
+    for groups in referenced:
+        low, high = paper_reference(groups[0].env_id)  # type: ignore[misc]
         variants = [group.variant for group in groups]
         for group in groups:
             if variants.count(group.variant) == 1:
                 scores[group.variant].append(stats.min_max_normalized(group.finals, low, high))
                 counts[group.variant].add(len(group.runs))
-    kept = {v: np.stack(s, axis=1) for v, s in scores.items() if len(s) == len(sections) and len(counts[v]) == 1}
+    kept = {v: np.stack(s, axis=1) for v, s in scores.items() if len(s) == len(referenced) and len(counts[v]) == 1}
     left_out = sorted(set(scores) - set(kept), key=variant_rank)
-    lines = ["## Across tasks", ""]
-    tasks = ", ".join(f"{g[0].env_id} ({g[0].n_timesteps:,} steps)" for g in sections)
+    tasks = ", ".join(groups[0].env_id for groups in referenced)
     lines += [
-        f"Final returns min-max normalized per section (0: the lowest final return of any run in the section, 1: the "
-        f"highest), over {len(sections)} sections: {tasks}.",
+        f"Final returns normalized by fixed reference scores per task (0: the lowest mean of the paper's columns at "
+        f"300K, 1: the paper's SERA), over {len(referenced)} tasks: {tasks}.",
         "",
     ]
     if not kept:
         return [
             *lines,
-            "No variant has one settings group with the same number of runs in every section: nothing aggregated.",
+            "No variant has one settings group with the same number of runs in every task: nothing aggregated.",
             "",
         ]
     lines += ["| variant | runs x tasks | normalized score IQM [95% CI] |", "|---|---|---|"]
@@ -543,20 +716,24 @@ def aggregate_section(sections: Sequence[list[RunGroup]], folder: Path, colors: 
         )
     lines += ["", f"IQM over runs and tasks; [a, b]: {INTERVAL}, runs resampled within each task, {reps} resamples."]
     if left_out:
-        lines += [f"Left out (not in every section with one settings group and equal run counts): {', '.join(left_out)}."]
-    thresholds = np.linspace(0.0, 1.0, 41)
+        lines += [f"Left out (not in every task with one settings group and equal run counts): {', '.join(left_out)}."]
+    all_scores = np.concatenate([values.ravel() for values in kept.values()])
+    thresholds = np.linspace(min(0.0, float(all_scores.min())), max(1.0, float(all_scores.max())), 41)
     profiles, bands = stats.performance_profile(kept, thresholds, reps)
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(6, 4))
     for variant in sorted(kept, key=variant_rank):
-        ax.plot(thresholds, profiles[variant], color=colors[variant], label=f"{variant} (n={kept[variant].size})")
-        ax.fill_between(thresholds, bands[variant][0], bands[variant][1], color=colors[variant], alpha=0.2)
+        ax.step(
+            thresholds, profiles[variant], where="post", color=colors[variant], label=f"{variant} (n={kept[variant].size})"
+        )
+        ax.fill_between(thresholds, bands[variant][0], bands[variant][1], step="post", color=colors[variant], alpha=0.2)
     ax.set_xlabel("normalized score τ")
     ax.set_ylabel("fraction of runs with score > τ")
-    ax.set_title("Performance profiles, band: 95% stratified-bootstrap CI", fontsize=10)
+    ax.set_title(f"Performance profiles, {budget:,} steps; band: 95% stratified-bootstrap CI", fontsize=10)
     ax.legend(fontsize="small")
-    _save(fig, folder / "performance_profiles.png")
-    return [*lines, "", "![performance profiles](performance_profiles.png)", ""]
+    name = f"performance_profiles_{budget}.png"
+    _save(fig, folder / name)
+    return [*lines, "", f"![performance profiles]({name})", ""]
 
 
 def write_report(
@@ -592,6 +769,9 @@ def write_report(
     for (env_id, budget), groups in sections_by_key.items():
         stem = f"{env_name(env_id)}_{budget}"
         lines += [f"## {env_id}, {budget:,} steps", "", *section_table(groups, reps), ""]
+        claims = claims_section([(group.variant, group.runs) for group in groups], reps)
+        if claims:
+            lines += ["### The paper's mechanism claims", "", *claims, ""]
         notes = section_notes(groups, all_groups)
         if notes:
             lines += ["Notes:", *notes, ""]
@@ -614,8 +794,10 @@ def write_report(
         matrices = plot_correlation_matrices(groups, folder / f"{stem}_correlations.png", matrix_step)
         if matrices is not None:
             lines += [f"![{env_id} critic correlation matrices]({stem}_correlations.png)", "", matrices, ""]
-    if len(sections_by_key) > 1:
-        lines += aggregate_section(list(sections_by_key.values()), folder, colors, reps)
+    for budget in sorted({budget for _, budget in sections_by_key}):
+        same_budget = [groups for (_, b), groups in sections_by_key.items() if b == budget]
+        if len(same_budget) > 1:
+            lines += aggregate_section(same_budget, folder, colors, reps, budget)
     if skipped:
         lines += ["## Left out", "", *(f"- {s.folder}: {s.reason}" for s in skipped), ""]
     report = folder / "report.md"
@@ -634,8 +816,12 @@ def report_roots(
     :func:`write_report` for every run under ``roots`` (see :func:`load_runs`); refuses to overwrite an earlier
     report unless ``overwrite``.
     """
-    if (Path(out) / "report.md").exists() and not overwrite:
-        raise ValueError(f"{out} already holds a report.md: choose another --out, or pass --overwrite to replace it")
+    if (Path(out) / "report.md").exists():
+        if not overwrite:
+            raise ValueError(f"{out} already holds a report.md: choose another --out, or pass --overwrite to replace it")
+        # The earlier report's figures go with it: a figure it drew that this one does not would otherwise stay
+        for stale in Path(out).glob("*.png"):
+            stale.unlink()
     runs, skipped = load_runs(roots)
     if not runs:
         reasons = "".join(f"; {s.folder}: {s.reason}" for s in skipped)

@@ -14,6 +14,7 @@ the torch threads and device the run had). A run whose
 records match a finished run's is not run again; an interrupted one runs again in its own folder.
 """
 
+import copy
 import json
 import math
 import os
@@ -21,6 +22,7 @@ import platform
 import shutil
 import subprocess
 import time
+import zipfile
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
@@ -42,6 +44,7 @@ from tqdm import tqdm
 
 from sb3_sera.common.callbacks import BIAS_FILE, InitialStateBiasCallback, initial_state_bias
 from sb3_sera.ctde.env import STATE_KEY
+from sb3_sera.experiments.policy_kwargs import parse_policy_kwargs
 
 #: rl-zoo3 keys that describe the run rather than the algorithm
 RUN_KEYS = ("n_timesteps", "policy", "n_envs", "env_kwargs", "noise_type", "noise_std")
@@ -53,6 +56,8 @@ ENGINE_KEYS = ("policy", "env", "seed", "verbose", "device", "tensorboard_log", 
 VERSIONED = ("sb3-sera", "stable-baselines3", "sb3-contrib", "rl-zoo3", "torch", "gymnasium", "gymnasium-robotics")
 #: File that marks a run as finished (written last)
 RESULT_FILE = "result.json"
+#: What reading a damaged ``.npz`` record raises
+NPZ_ERRORS = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile)
 
 
 def algorithm_classes() -> dict[str, type[BaseAlgorithm]]:
@@ -173,6 +178,50 @@ class RunSpec:
         return {**self.run_args(), "config": _plain(self.config())}
 
 
+#: Settings every run engine run checks before any run, whatever its algorithm: key -> (smallest allowed, integer)
+COMMON_RANGES: dict[str, tuple[float, bool]] = {
+    "learning_starts": (0, True),
+    "batch_size": (1, True),
+    "buffer_size": (1, True),
+    "n_envs": (1, True),
+    "n_steps": (1, True),
+}
+
+
+def check_run_settings(spec: "RunSpec") -> None:
+    """
+    Raise ``ValueError`` naming the run and the key for a budget, evaluation setting or common hyperparameter of the
+    wrong type or out of range, and for ``learning_starts`` at or above the budget (the run would train nothing and
+    report an untrained policy as its result).
+    """
+    where = f"{spec.variant} on {spec.env_id}"
+    for key, value, low in (("n_timesteps", spec.n_timesteps, 1), ("eval_freq", spec.eval_freq, 1)):
+        if value < low:
+            raise ValueError(f"{where}: {key}={value} is out of range: it must be an integer >= {low}")
+    if spec.n_eval_episodes < 1:
+        raise ValueError(f"{where}: eval_episodes={spec.n_eval_episodes} is out of range: it must be an integer >= 1")
+    if spec.eval_freq > spec.n_timesteps:
+        raise ValueError(
+            f"{where}: eval_freq={spec.eval_freq} is above the budget n_timesteps={spec.n_timesteps}: the run would "
+            "never be evaluated"
+        )
+    for key, (smallest, integer) in COMMON_RANGES.items():
+        if key not in spec.hyperparams:
+            continue
+        value = spec.hyperparams[key]
+        number = isinstance(value, int | float) and not isinstance(value, bool)
+        if not number or (integer and float(value) != int(value)) or value < smallest:
+            kind = "an integer" if integer else "a number"
+            raise ValueError(f"{where}: {key}={value!r} is invalid: it must be {kind} >= {smallest:g}")
+    learning_starts = spec.hyperparams.get("learning_starts")
+    if learning_starts is not None and learning_starts >= spec.n_timesteps:
+        raise ValueError(
+            f"{where}: learning_starts={learning_starts} is at or above the budget n_timesteps={spec.n_timesteps}: "
+            "the run would train nothing; lower learning_starts (e.g. -params learning_starts:"
+            f"{max(spec.n_timesteps // 10, 1)}) or raise the budget"
+        )
+
+
 def make_spec(
     variant: str,
     algo: str,
@@ -193,19 +242,21 @@ def make_spec(
     hyperparams = {**defaults, **(overrides or {})}
     hyperparams.pop("n_timesteps", None)
     check_hyperparams(algo, hyperparams, f"{variant} on {env_id}")
-    return RunSpec(
-        variant,
-        algo,
-        env_id,
-        int(seed),
-        int(n_timesteps),
-        hyperparams,
-        int(eval_freq),
-        int(n_eval_episodes),
-        num_threads,
-        device,
-        source,
+    spec = RunSpec(
+        variant=variant,
+        algo=algo,
+        env_id=env_id,
+        seed=int(seed),
+        n_timesteps=int(n_timesteps),
+        hyperparams=hyperparams,
+        eval_freq=int(eval_freq),
+        n_eval_episodes=int(n_eval_episodes),
+        num_threads=num_threads,
+        device=device,
+        hyperparams_source=source,
     )
+    check_run_settings(spec)
+    return spec
 
 
 def package_versions() -> dict[str, str]:
@@ -342,18 +393,23 @@ class RunResult:
     hyperparams: dict[str, Any] = field(default_factory=dict)
     #: The run folder
     folder: str = ""
+    #: Steps between evaluations and episodes per evaluation, as recorded (None: not recorded, as by rl-zoo3's train)
+    eval_freq: int | None = None
+    eval_episodes: int | None = None
 
 
 def make_model(spec: RunSpec, env: VecEnv, tensorboard_log: str | None = None) -> BaseAlgorithm:
     """The spec's model on ``env``, its hyperparameters turned into objects as rl-zoo3 does."""
     from rl_zoo3.exp_manager import ExperimentManager
-    from torch import nn
 
     kwargs = {key: value for key, value in spec.hyperparams.items() if key not in RUN_KEYS}
     # Schedules given as strings ("lin_3e-4") become rl-zoo3's schedule objects
     kwargs.update(ExperimentManager._preprocess_schedules({k: v for k, v in kwargs.items() if isinstance(v, str)}))
     if isinstance(kwargs.get("policy_kwargs"), str):
-        kwargs["policy_kwargs"] = eval(kwargs["policy_kwargs"], {"nn": nn, "th": th, "dict": dict})
+        kwargs["policy_kwargs"] = parse_policy_kwargs(kwargs["policy_kwargs"])
+    elif isinstance(kwargs.get("policy_kwargs"), dict):
+        # SB3 writes into the dict it is given (use_sde, ...): a grid's dict shared by variants must stay as written
+        kwargs["policy_kwargs"] = copy.deepcopy(kwargs["policy_kwargs"])
     if isinstance(kwargs.get("train_freq"), list):
         kwargs["train_freq"] = tuple(kwargs["train_freq"])
     noise_type = spec.hyperparams.get("noise_type")
@@ -431,25 +487,57 @@ def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
 
 
 def load_result(folder: Path) -> RunResult:
-    """A finished run of this engine or of ``sb3-sera train`` (its records, evaluations and bias records)."""
+    """
+    A finished run of this engine or of ``sb3-sera train`` (its records, evaluations and bias records).
+
+    :raises ValueError: naming the folder and what is wrong with its records (missing, empty, not a mapping, no
+        seed or budget, unreadable or empty evaluations, an unreadable ``result.json``)
+    """
     args_files = list(folder.glob("*/args.yml"))
     if not args_files:
         raise ValueError(f"{folder}: no <env_name>/args.yml record, so its seed and budget are unknown")
     records = args_files[0].parent
-    args, config = read_record(records / "args.yml"), read_record(records / "config.yml")
-    evaluations = np.load(folder / "evaluations.npz")
-    returns = evaluations["results"].mean(axis=1)
+    try:
+        args, config = read_record(records / "args.yml"), read_record(records / "config.yml")
+    except (OSError, yaml.YAMLError) as error:
+        raise ValueError(f"{folder}: unreadable record: {' '.join(str(error).split())}") from None
+    for name, record in (("args.yml", args), ("config.yml", config)):
+        if not isinstance(record, dict) or not record:
+            raise ValueError(f"{folder}: {name} is {'empty' if not record else 'not a mapping'}")
+    missing = [key for key in ("algo", "env", "seed") if args.get(key) is None]
+    if missing:
+        raise ValueError(f"{folder}: args.yml has no {', '.join(missing)}")
+    try:
+        with np.load(folder / "evaluations.npz") as evaluations:
+            returns = evaluations["results"].mean(axis=1)
+            timesteps = [int(t) for t in evaluations["timesteps"]]
+    except NPZ_ERRORS as error:
+        raise ValueError(f"{folder}: unreadable evaluations.npz ({type(error).__name__}: {error})") from None
+    if len(timesteps) == 0 or len(timesteps) != len(returns):
+        raise ValueError(f"{folder}: evaluations.npz holds {len(timesteps)} steps and {len(returns)} returns")
     bias: list[float] = []
     if (folder / BIAS_FILE).exists():
-        bias_records = np.load(folder / BIAS_FILE)
-        bias = initial_state_bias(bias_records["values"], bias_records["discounted_returns"])
+        try:
+            with np.load(folder / BIAS_FILE) as bias_records:
+                bias = initial_state_bias(bias_records["values"], bias_records["discounted_returns"])
+        except NPZ_ERRORS as error:
+            raise ValueError(f"{folder}: unreadable {BIAS_FILE} ({type(error).__name__}: {error})") from None
     result_file = folder / RESULT_FILE
-    wall_time = json.loads(result_file.read_text())["wall_time_s"] if result_file.exists() else math.nan
-    budget = int(args.get("n_timesteps") or -1)
-    if budget <= 0:
-        # rl-zoo3 records -1 when the budget came from the YAML entry
-        budget = int(float(config["n_timesteps"]))
+    wall_time = math.nan
+    if result_file.exists():
+        try:
+            wall_time = float(json.loads(result_file.read_text())["wall_time_s"])
+        except (ValueError, KeyError, TypeError) as error:
+            raise ValueError(f"{folder}: unreadable {RESULT_FILE} ({type(error).__name__}: {error})") from None
+    try:
+        budget = int(args.get("n_timesteps") or -1)
+        if budget <= 0:
+            # rl-zoo3 records -1 when the budget came from the YAML entry
+            budget = int(float(config["n_timesteps"]))
+    except (KeyError, TypeError, ValueError):
+        raise ValueError(f"{folder}: neither args.yml nor config.yml gives the budget (n_timesteps)") from None
     hyperparams = {key: value for key, value in config.items() if key != "n_timesteps"}
+    eval_freq, eval_episodes = args.get("eval_freq"), args.get("eval_episodes")
     return RunResult(
         variant=str(args.get("variant") or args["algo"]),
         algo=str(args["algo"]),
@@ -458,11 +546,13 @@ def load_result(folder: Path) -> RunResult:
         n_timesteps=budget,
         wall_time_s=wall_time,
         final_return=float(returns[-1]),
-        timesteps=[int(t) for t in evaluations["timesteps"]],
+        timesteps=timesteps,
         returns=[float(r) for r in returns],
         initial_state_bias=bias,
         hyperparams=_plain(hyperparams),
         folder=str(folder),
+        eval_freq=None if eval_freq is None else int(eval_freq),
+        eval_episodes=None if eval_episodes is None else int(eval_episodes),
     )
 
 

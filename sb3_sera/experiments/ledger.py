@@ -1,0 +1,230 @@
+"""
+The results ledger: the compact records of finished runs, committed with the code (``results/`` at the top of the
+repository), so that anyone can re-analyse them, add seeds to them and check every number the README prints.
+
+A ledger run keeps the run engine's layout (``results/<variant>/<env_name>_<id>/``, so ``sb3-sera report results``
+reads it) and only its records: ``<env_name>/config.yml`` and ``args.yml`` (with the git commit of the code that
+ran and whether its tree was clean), ``evaluations.npz``, ``initial_state_bias.npz``, ``critic_diagnostics.npz``,
+``result.json`` and the monitor file; no model, replay buffer or TensorBoard events. The ledger only grows:
+:func:`add_runs` copies finished runs in under new ids and refuses an unfinished run, a run without its commit, a
+record that holds an absolute path, and a run the ledger already has (same algorithm, variant, task, budget,
+evaluation settings, hyperparameters and seed).
+
+:func:`write_results` regenerates the README's results (the Markdown between ``<!-- ledger:begin -->`` and
+``<!-- ledger:end -->``) and the full report with its figures in ``docs/results/`` from the ledger alone;
+:func:`readme_block` is what a test compares the README against.
+"""
+
+import os
+import shutil
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from sb3_sera.common.callbacks import BIAS_FILE, DIAGNOSTICS_FILE
+from sb3_sera.experiments.report import Skipped, group_runs, load_runs, section_table, write_report
+from sb3_sera.experiments.runs import RESULT_FILE, RunResult, env_name, read_record, run_ids
+
+#: The ledger's folder, at the top of the repository
+LEDGER_DIR = "results"
+#: Where the full report from the ledger goes
+DOCS_DIR = "docs/results"
+#: The README's generated results lie between these lines
+BEGIN, END = "<!-- ledger:begin -->", "<!-- ledger:end -->"
+#: A run's files the ledger keeps (the records folder's are added per task)
+RUN_FILES = ("evaluations.npz", BIAS_FILE, DIAGNOSTICS_FILE, RESULT_FILE)
+#: Bootstrap resamples of the README's and docs' intervals
+LEDGER_REPS = 2000
+
+
+@dataclass
+class AddOutcome:
+    """What :func:`add_runs` did: the ledger folders it made and the source folders it refused, with why."""
+
+    added: list[Path] = field(default_factory=list)
+    refused: list[Skipped] = field(default_factory=list)
+
+
+def find_ledger(start: str | Path | None = None) -> Path:
+    """
+    The ledger a notebook or script reads: ``$SB3_SERA_LEDGER`` when set, else the first ``results/`` folder in
+    ``start`` (default: the working directory) or a folder above it; ``FileNotFoundError`` when there is none.
+    """
+    if os.environ.get("SB3_SERA_LEDGER"):
+        return Path(os.environ["SB3_SERA_LEDGER"])
+    here = Path(start or Path.cwd()).resolve()
+    for folder in (here, *here.parents):
+        if (folder / LEDGER_DIR).is_dir():
+            return folder / LEDGER_DIR
+    raise FileNotFoundError(f"no {LEDGER_DIR}/ folder in {here} or above it: set SB3_SERA_LEDGER to the ledger's folder")
+
+
+def study_runs(env_id: str, n_timesteps: int, variants: Sequence[str], ledger: str | Path | None = None) -> list[RunResult]:
+    """The ledger's finished runs of ``variants`` on one task and budget (see :func:`find_ledger`)."""
+    runs, _ = load_runs([find_ledger() if ledger is None else ledger])
+    return [run for run in runs if run.env_id == env_id and run.n_timesteps == n_timesteps and run.variant in variants]
+
+
+def run_identity(folder: Path) -> str:
+    """What makes two runs the same run in the ledger: algorithm, variant, task, budget, evaluations, settings, seed."""
+    records = next(folder.glob("*/args.yml")).parent
+    args, config = read_record(records / "args.yml"), read_record(records / "config.yml")
+    keys = ("algo", "variant", "env", "seed", "n_timesteps", "eval_freq", "eval_episodes")
+    return yaml.safe_dump({"args": {key: args.get(key) for key in keys}, "config": config}, sort_keys=True)
+
+
+def _absolute_paths(value: Any) -> list[str]:
+    """The strings in a record that look like absolute paths of the machine that ran it."""
+    if isinstance(value, dict):
+        return [path for item in value.values() for path in _absolute_paths(item)]
+    if isinstance(value, list):
+        return [path for item in value for path in _absolute_paths(item)]
+    return [value] if isinstance(value, str) and (value.startswith("/") or value[1:3] == ":\\") else []
+
+
+def _refusal(folder: Path, args: dict[str, Any], config: dict[str, Any]) -> str | None:
+    if not (folder / RESULT_FILE).exists():
+        return "unfinished: no result.json"
+    if not (folder / "evaluations.npz").exists():
+        return "no evaluations.npz"
+    if not args.get("git_commit"):
+        return "its args.yml names no git commit: the code that made it is unknown"
+    paths = _absolute_paths(args) + _absolute_paths(config)
+    if paths:
+        return f"its records hold absolute paths of the machine that ran it: {paths}"
+    return None
+
+
+def add_runs(sources: Sequence[str | Path], ledger: str | Path = LEDGER_DIR) -> AddOutcome:
+    """
+    Copy the finished runs under ``sources`` (``<source>/<variant>/<env_name>_<id>/``) into the ledger, each under the
+    next free id of its variant and task; runs already there, unfinished, or without their commit are refused.
+    A copy is made in a temporary folder and renamed into place, so an interrupted add leaves no partial run.
+    """
+    ledger = Path(ledger)
+    outcome = AddOutcome()
+    known = {run_identity(folder) for folder in _run_folders(ledger)}
+    for source in sources:
+        if not Path(source).is_dir():
+            raise FileNotFoundError(f"{source}: no such folder")
+        for folder in _run_folders(Path(source)):
+            records = next(folder.glob("*/args.yml")).parent
+            args, config = read_record(records / "args.yml"), read_record(records / "config.yml")
+            reason = _refusal(folder, args, config)
+            identity = run_identity(folder)
+            if reason is None and identity in known:
+                reason = "the ledger already has this run (same algorithm, variant, task, budget, settings and seed)"
+            if reason is not None:
+                outcome.refused.append(Skipped(str(folder), reason))
+                continue
+            variant_dir = ledger / str(args.get("variant") or args["algo"])
+            target = variant_dir / f"{env_name(str(args['env']))}_{max(run_ids(variant_dir, str(args['env'])), default=0) + 1}"
+            partial = variant_dir / f".{target.name}.partial"
+            shutil.rmtree(partial, ignore_errors=True)
+            (partial / records.name).mkdir(parents=True)
+            for name in ("config.yml", "args.yml"):
+                shutil.copy2(records / name, partial / records.name / name)
+            for path in [*(folder / name for name in RUN_FILES), *sorted(folder.glob("*.monitor.csv"))]:
+                if path.exists():
+                    shutil.copy2(path, partial / path.name)
+            partial.rename(target)
+            known.add(identity)
+            outcome.added.append(target)
+    return outcome
+
+
+def _run_folders(root: Path) -> list[Path]:
+    """Folders ``<root>/<variant>/<env_name>_<id>/`` holding a ``<env_name>/args.yml`` record."""
+    return sorted(folder for folder in root.glob("*/*") if folder.is_dir() and any(folder.glob("*/args.yml")))
+
+
+def _sections(runs: Sequence[RunResult]) -> dict[tuple[str, int], list[Any]]:
+    sections: dict[tuple[str, int], list[Any]] = {}
+    for group in group_runs(runs):
+        sections.setdefault((group.env_id, group.n_timesteps), []).append(group)
+    return sections
+
+
+def readme_block(ledger: str | Path = LEDGER_DIR, reps: int = LEDGER_REPS, docs: str = DOCS_DIR) -> str:
+    """
+    The README's results, from the ledger alone: per task and budget, the report's table and the paper's mechanism
+    claims with their verdicts, and links to the figures of ``docs/results/``.
+    """
+    from sb3_sera.experiments.claims import claims_section
+
+    runs, skipped = load_runs([ledger])
+    lines = [BEGIN, ""]
+    if not runs:
+        lines += ["The ledger holds no finished run yet.", ""]
+    for (env_id, budget), groups in _sections(runs).items():
+        commits = sorted({_commit(run) for group in groups for run in group.runs})
+        lines += [
+            f"**{env_id}, {budget:,} steps** (code at {', '.join(f'`{c}`' for c in commits)}; figures in "
+            f"[{docs}/report.md]({docs}/report.md))",
+            "",
+            *section_table(groups, reps),
+            "",
+        ]
+        claims = claims_section([(group.variant, group.runs) for group in groups], reps)
+        if claims:
+            lines += ["The paper's mechanism claims on these runs:", "", *claims, ""]
+    if skipped:
+        # Named inside the ledger, never by the absolute path of the machine that made the block
+        names = [f"{Path(ledger).name}/{Path(s.folder).relative_to(ledger).as_posix()}" for s in skipped]
+        lines += [
+            "Left out of the ledger's report:",
+            "",
+            *(f"- {n}: {s.reason}" for n, s in zip(names, skipped, strict=True)),
+            "",
+        ]
+    lines.append(END)
+    return "\n".join(lines)
+
+
+def _commit(run: RunResult) -> str:
+    records = next(Path(run.folder).glob("*/args.yml"))
+    args = read_record(records)
+    commit = str(args.get("git_commit") or "unknown")[:10]
+    return commit if args.get("git_clean", True) else f"{commit}, modified tree"
+
+
+def replace_block(text: str, block: str) -> str:
+    """``text`` (the README) with its generated results replaced by ``block``; ``ValueError`` without the markers."""
+    start, end = text.find(BEGIN), text.find(END)
+    if start < 0 or end < start:
+        raise ValueError(f"the README has no results block: add a line {BEGIN} and, below it, a line {END}")
+    return text[:start] + block + text[end + len(END) :]
+
+
+def current_block(text: str) -> str:
+    """The README's generated results as they stand."""
+    start, end = text.find(BEGIN), text.find(END)
+    if start < 0 or end < start:
+        raise ValueError(f"the README has no results block between {BEGIN} and {END}")
+    return text[start : end + len(END)]
+
+
+def write_results(
+    ledger: str | Path = LEDGER_DIR,
+    docs: str | Path = DOCS_DIR,
+    readme: str | Path = "README.md",
+    reps: int = LEDGER_REPS,
+) -> tuple[Path, Path]:
+    """
+    Regenerate ``docs/results/`` (``report.md`` and every figure) and the README's results block from the ledger.
+
+    :return: the report and the README
+    """
+    runs, skipped = load_runs([ledger])
+    if not runs:
+        raise ValueError(f"{ledger}: the ledger holds no finished run")
+    docs = Path(docs)
+    for stale in docs.glob("*.png"):
+        stale.unlink()
+    report = write_report(runs, docs, skipped, reps=reps, sources=[str(ledger)])
+    readme = Path(readme)
+    readme.write_text(replace_block(readme.read_text(), readme_block(ledger, reps, docs.as_posix())))
+    return report, readme

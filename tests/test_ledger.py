@@ -1,0 +1,209 @@
+"""The results ledger: adding finished runs (and refusing the rest), regenerating the README's results, the claims."""
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from sb3_sera.common.callbacks import BIAS_FILE, DIAGNOSTICS_FILE
+from sb3_sera.experiments import bench, claims, ledger
+from sb3_sera.experiments.report import load_runs
+from sb3_sera.experiments.runs import read_record
+
+ROOT = Path(__file__).resolve().parents[1]
+
+GRID = """
+algorithms:
+  serasac: {}
+  sac: {}
+tasks: [Pendulum-v1]
+seeds: [0]
+n_timesteps: 200
+eval_freq: 100
+eval_episodes: 1
+hyperparams: {learning_starts: 50, batch_size: 32}
+"""
+
+
+@pytest.fixture(scope="module")
+def bench_out(tmp_path_factory) -> Path:
+    """Two finished runs of the run engine (SERASAC and SAC, 200 steps)."""
+    folder = tmp_path_factory.mktemp("bench")
+    grid = folder / "grid.yml"
+    grid.write_text(GRID)
+    bench.run_grid(grid, folder / "out", n_jobs=1)
+    return folder / "out"
+
+
+def test_runs_record_their_commit_and_no_absolute_path(bench_out):
+    args = read_record(next(bench_out.glob("serasac/*/*/args.yml")))
+    assert len(args["git_commit"]) == 40 and isinstance(args["git_clean"], bool)
+    assert args["hyperparams_source"] == "sb3_sera/hyperparams/serasac.yml:Pendulum-v1"
+    assert not ledger._absolute_paths(args)
+
+
+def test_add_copies_records_only_and_refuses_duplicates(bench_out, tmp_path):
+    results = tmp_path / "results"
+    outcome = ledger.add_runs([bench_out], results)
+    assert sorted(path.relative_to(results).as_posix() for path in outcome.added) == [
+        "sac/Pendulum-v1_1",
+        "serasac/Pendulum-v1_1",
+    ]
+    run = results / "serasac/Pendulum-v1_1"
+    kept = sorted(path.relative_to(run).as_posix() for path in run.rglob("*") if path.is_file())
+    records = ["Pendulum-v1/args.yml", "Pendulum-v1/config.yml"]
+    assert kept == sorted([*records, "0.monitor.csv", BIAS_FILE, DIAGNOSTICS_FILE, "evaluations.npz", "result.json"])
+    # No model, replay buffer or TensorBoard events; the ledger reads as run folders do
+    assert not list(results.rglob("*.zip")) and not list(results.rglob("events.*"))
+    runs, skipped = load_runs([results])
+    assert len(runs) == 2 and not skipped
+    # The same runs again: refused, nothing replaced
+    again = ledger.add_runs([bench_out], results)
+    assert not again.added
+    assert [s.reason for s in again.refused] == [
+        "the ledger already has this run (same algorithm, variant, task, budget, settings and seed)"
+    ] * 2
+
+
+def _copy_run(bench_out: Path, tmp_path: Path, change) -> Path:
+    source = tmp_path / "source"
+    shutil.copytree(bench_out / "serasac", source / "serasac")
+    run = next((source / "serasac").iterdir())
+    change(run)
+    return source
+
+
+@pytest.mark.parametrize(
+    ("change", "reason"),
+    [
+        (lambda run: (run / "result.json").unlink(), "unfinished: no result.json"),
+        (
+            lambda run: (run / "Pendulum-v1" / "args.yml").write_text(
+                yaml.safe_dump({**read_record(run / "Pendulum-v1" / "args.yml"), "git_commit": None})
+            ),
+            "names no git commit",
+        ),
+        (
+            lambda run: (run / "Pendulum-v1" / "args.yml").write_text(
+                yaml.safe_dump({**read_record(run / "Pendulum-v1" / "args.yml"), "hyperparams_source": "/home/me/x.yml"})
+            ),
+            "absolute paths of the machine that ran it: ['/home/me/x.yml']",
+        ),
+    ],
+    ids=["unfinished", "no-commit", "absolute-path"],
+)
+def test_add_refuses_what_cannot_be_trusted(bench_out, tmp_path, change, reason):
+    outcome = ledger.add_runs([_copy_run(bench_out, tmp_path, change)], tmp_path / "results")
+    assert not outcome.added and reason in outcome.refused[0].reason
+    assert not (tmp_path / "results").exists() or not list((tmp_path / "results").rglob("*.npz"))
+
+
+def test_a_new_seed_gets_the_next_id(bench_out, tmp_path):
+    results = tmp_path / "results"
+    ledger.add_runs([bench_out], results)
+
+    def reseed(run: Path) -> None:
+        args = read_record(run / "Pendulum-v1" / "args.yml")
+        (run / "Pendulum-v1" / "args.yml").write_text(yaml.safe_dump({**args, "seed": 7}))
+
+    outcome = ledger.add_runs([_copy_run(bench_out, tmp_path, reseed)], results)
+    assert [path.name for path in outcome.added] == ["Pendulum-v1_2"]
+    assert read_record(results / "serasac/Pendulum-v1_1/Pendulum-v1/args.yml")["seed"] == 0
+
+
+def test_report_regenerates_the_readme_block_and_docs(bench_out, tmp_path, sb3_sera):
+    results = tmp_path / "results"
+    ledger.add_runs([bench_out], results)
+    readme = tmp_path / "README.md"
+    readme.write_text(f"# Title\n\nBefore.\n\n{ledger.BEGIN}\nstale\n{ledger.END}\n\nAfter.\n")
+    sb3_sera("ledger", "report", "--ledger", str(results), "--docs", str(tmp_path / "docs"), "--readme", str(readme))
+    text = readme.read_text()
+    assert text.startswith("# Title\n\nBefore.\n\n") and text.endswith("\n\nAfter.\n") and "stale" not in text
+    assert ledger.current_block(text) == ledger.readme_block(results, docs=str(tmp_path / "docs"))
+    assert "| serasac | 1 |" in text and "| sac | 1 |" in text
+    assert (tmp_path / "docs" / "report.md").exists() and list((tmp_path / "docs").glob("*_curves.png"))
+    with pytest.raises(ValueError, match="the README has no results block"):
+        ledger.replace_block("no markers", "block")
+
+
+def test_readme_results_are_what_the_ledger_gives_today():
+    # Every number between the README's ledger markers is regenerated from results/ by `sb3-sera ledger report`
+    readme = (ROOT / "README.md").read_text()
+    assert ledger.current_block(readme) == ledger.readme_block(ROOT / "results", docs=ledger.DOCS_DIR)
+
+
+def _claim_run(tmp_path: Path, variant: str, seed: int, mc_corr: float, finals: list[float]):
+    """A finished run whose last evaluation records ``mc_error_corr`` and whose curve is ``finals``."""
+    folder = tmp_path / variant / f"HalfCheetah-v5_{seed + 1}"
+    (folder / "HalfCheetah-v5").mkdir(parents=True)
+    args = {"algo": "serasac", "variant": variant, "env": "HalfCheetah-v5", "seed": seed, "n_timesteps": 300}
+    (folder / "HalfCheetah-v5" / "args.yml").write_text(yaml.safe_dump(args))
+    (folder / "HalfCheetah-v5" / "config.yml").write_text(yaml.safe_dump({"n_timesteps": 300, "learning_starts": 100}))
+    steps = np.array([100, 200, 300])
+    np.savez(folder / "evaluations.npz", timesteps=steps, results=np.array(finals)[:, None], ep_lengths=np.ones((3, 1)))
+    # Initial-state bias -5, +3, -1 at the three evaluations: |bias| after learning_starts (steps 200, 300) is 2
+    np.savez(
+        folder / BIAS_FILE, timesteps=steps, values=np.array([[-5.0], [3.0], [-1.0]]), discounted_returns=np.zeros((3, 1))
+    )
+    np.savez(
+        folder / DIAGNOSTICS_FILE,
+        timesteps=steps,
+        mc_error_corr=np.array([0.9, 0.9, mc_corr]),
+        td_error_corr=np.array([0.5, 0.5, mc_corr / 2]),
+        td_target_var=np.array([1.0, 4.0, 9.0]),
+        td_target_mean=np.array([1.0, 2.0, 6.0]),
+    )
+    (folder / "result.json").write_text(json.dumps({"wall_time_s": 1.0}))
+
+
+def test_claims_by_hand(tmp_path):
+    for seed, corr in enumerate([0.2, 0.3, 0.4]):
+        _claim_run(tmp_path, "serasac", seed, corr, [0.0, 10.0, 20.0])
+    for seed, corr in enumerate([0.6, 0.7, 0.8]):
+        _claim_run(tmp_path, "sera_nolr", seed, corr, [0.0, 10.0, 30.0])
+    runs, _ = load_runs([tmp_path])
+    by_variant = {v: [r for r in runs if r.variant == v] for v in ("serasac", "sera_nolr")}
+    run = by_variant["serasac"][0]
+    assert claims.abs_bias(run) == pytest.approx(2.0)
+    # Second half (steps >= 150): 4 / 2^2 = 1 and 9 / 6^2 = 0.25 -> 0.625
+    assert claims.target_cv2(run) == pytest.approx(0.625)
+    lines = claims.claims_table(by_variant, reps=500)
+    mc_row = next(line for line in lines if "mc_error_corr" in line)
+    # SERA 0.3 against 0.7: -0.4; every resample of SERA lies in [0.2, 0.4] and of NoLR in [0.6, 0.8]
+    assert "| -0.4 [" in mc_row and mc_row.endswith("| supported |")
+    low, high = (float(x) for x in mc_row.split("| -0.4 [")[1].split("]")[0].split(", "))
+    assert -0.6 <= low <= -0.4 <= high <= -0.2
+    # AUC: SERA (0, 10, 20) -> 10, NoLR (0, 10, 30) -> 12.5: SERA lower, claimed higher
+    auc_row = next(line for line in lines if "normalized AUC" in line)
+    assert "| -2.5 [-2.5, -2.5] | not supported |" in auc_row
+    # Fewer than MIN_RUNS a side: no interval, no verdict
+    few = claims.claims_table({k: v[:2] for k, v in by_variant.items()}, reps=500)
+    assert all("too few runs" in line for line in few if line.startswith("| Fig."))
+
+
+def test_verdicts():
+    assert claims.verdict(-0.3, -0.1, lower=True) == "supported"
+    assert claims.verdict(0.1, 0.3, lower=True) == "not supported"
+    assert claims.verdict(-0.1, 0.3, lower=True) == "inconclusive at this n"
+    assert claims.verdict(0.1, 0.3, lower=False) == "supported"
+    point, low, high = claims.mean_difference_interval(np.array([1.0, 1.0]), np.array([0.0, 0.0]), reps=100)
+    assert (point, low, high) == (1.0, 1.0, 1.0)
+
+
+def test_disagreement_measures_by_hand(tmp_path):
+    folder = tmp_path / "run"
+    folder.mkdir()
+    run = type("Run", (), {"folder": str(folder)})()
+    # Three critics: unit own variance and 0.5 shared with every other critic
+    cov = np.eye(3) + 0.5
+    np.savez(folder / DIAGNOSTICS_FILE, timesteps=np.array([1]), critic_cov_matrix=cov[None])
+    # Own part about the ensemble mean: (1 - 1/3) = 2/3; ensemble mean's variance: (3 * 1.5 + 6 * 0.5) / 9 = 5/6
+    assert claims.relative_disagreement(run) == pytest.approx((2 / 3) / (5 / 6))
+    assert claims.closest_pair(run) == pytest.approx(1.0)
+    # Critics 0 and 1 near duplicates: Var(Q0 - Q1) = 1 + 1 - 2 * 0.99 = 0.02 against 1.0 for the other two pairs
+    cov = np.array([[1.0, 0.99, 0.5], [0.99, 1.0, 0.5], [0.5, 0.5, 1.0]])
+    np.savez(folder / DIAGNOSTICS_FILE, timesteps=np.array([1]), critic_cov_matrix=cov[None])
+    assert claims.closest_pair(run) == pytest.approx(0.02 / ((0.02 + 1.0 + 1.0) / 3))
