@@ -9,7 +9,7 @@ from pathlib import Path
 import yaml
 
 from sb3_sera.experiments import bench, compare, ledger, report, stats, zoo
-from sb3_sera.experiments.runs import RunResult, default_threads, env_name
+from sb3_sera.experiments.runs import Interrupted, RunResult, default_threads, env_name
 
 
 def _print_report(results: list[RunResult], out: str, name: str, reps: int) -> None:
@@ -172,6 +172,10 @@ def main(argv: Sequence[str] | None = None) -> None:
     args = parser.parse_args(argv)
     try:
         args.func(args)
+    except KeyboardInterrupt:
+        parser.exit(130, f"sb3-sera {args.command}: interrupted\n")
+    except Interrupted as error:
+        parser.exit(130, f"sb3-sera {args.command}: {error}\n")
     except (ValueError, RuntimeError, FileNotFoundError, yaml.YAMLError) as error:
         # A user's mistake or a failed run: one line, no traceback
         message = " ".join(str(error).split())

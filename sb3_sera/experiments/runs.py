@@ -20,11 +20,15 @@ import math
 import os
 import platform
 import shutil
+import signal
 import subprocess
+import sys
+import threading
 import time
 import zipfile
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from importlib import metadata
 from multiprocessing import get_context
@@ -460,6 +464,8 @@ def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
     folder = Path(folder)
     if (folder / RESULT_FILE).exists():
         return load_result(folder)
+    # An interrupted run starts again here, maybe under newer code: its record names the code that runs now
+    (records_dir(folder, spec.env_id) / "args.yml").write_text(yaml.safe_dump(_plain(spec.args()), sort_keys=True))
     if spec.num_threads is not None:
         th.set_num_threads(spec.num_threads)
     env_kwargs = spec.hyperparams.get("env_kwargs") or {}
@@ -561,6 +567,66 @@ def default_threads(n_jobs: int) -> int:
     return max((os.cpu_count() or 1) // max(n_jobs, 1), 1)
 
 
+#: The lock file of an output folder, held by the command that runs into it
+LOCK_FILE = ".sb3_sera.lock"
+
+
+@contextmanager
+def output_lock(out_dir: str | Path) -> Iterator[None]:
+    """
+    Hold ``<out_dir>/.sb3_sera.lock`` while runs are made into ``out_dir``: a second ``compare``/``bench`` into the
+    same folder is refused with a ``RuntimeError`` naming the holder, instead of training inside the first one's
+    run folders. The lock is the operating system's (``flock``): a killed holder releases it.
+    """
+    import fcntl
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    handle = (out / LOCK_FILE).open("a+")
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        handle.seek(0)
+        holder = handle.read().strip() or "another process"
+        handle.close()
+        raise RuntimeError(f"{out} is in use by {holder}: wait for it to end, or give another --out") from None
+    try:
+        handle.seek(0)
+        handle.truncate()
+        handle.write(f"process {os.getpid()} ({' '.join(sys.argv)}), since {time.strftime('%Y-%m-%d %H:%M:%S')}")
+        handle.flush()
+        yield
+    finally:
+        handle.truncate(0)
+        fcntl.flock(handle, fcntl.LOCK_UN)
+        handle.close()
+
+
+class Interrupted(RuntimeError):
+    """Runs stopped by Ctrl-C (SIGINT) or SIGTERM: the finished ones are kept, the unfinished ones named."""
+
+
+def _worker_init(parent: int) -> None:
+    """
+    A run worker leaves Ctrl-C to its parent (which stops every worker once) and ends when its parent does, even
+    when the parent was killed outright (Linux: the kernel signals it; elsewhere a thread watches the parent).
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    if os.getppid() != parent:
+        os._exit(1)  # the parent died before the death signal was set
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True).start()
+
+
 def execute(
     specs: Sequence[RunSpec],
     out_dir: str | Path,
@@ -574,14 +640,17 @@ def execute(
     ``ray start`` made on this machine). Finished runs are read back, not run again. A failed run does not stop
     the others: once all have ended, ``RuntimeError`` names the failed ones. A failed run that had not evaluated
     yet leaves no folder behind; one that had keeps its logs, without the ``result.json`` of a finished run.
+    ``out_dir`` is locked while the runs are made (:func:`output_lock`). One Ctrl-C (or SIGTERM) stops every
+    worker and raises :class:`Interrupted` naming the unfinished runs, which the same command resumes.
 
     :return: the results, in the order of ``specs``
     """
-    folders = assign_folders(specs, out_dir)
-    if ray_address is not None:
-        outcomes = _execute_on_ray(specs, folders, ray_address, progress_bar)
-    else:
-        outcomes = _execute_locally(specs, folders, n_jobs, progress_bar)
+    with output_lock(out_dir):
+        folders = assign_folders(specs, out_dir)
+        if ray_address is not None:
+            outcomes = _execute_on_ray(specs, folders, ray_address, progress_bar)
+        else:
+            outcomes = _execute_locally(specs, folders, n_jobs, progress_bar)
     failed = []
     for spec, folder, outcome in zip(specs, folders, outcomes, strict=True):
         if isinstance(outcome, BaseException):
@@ -598,18 +667,35 @@ def _execute_locally(
 ) -> list[RunResult | BaseException]:
     n_jobs = min(n_jobs or os.cpu_count() or 1, len(specs))
     outcomes: dict[int, RunResult | BaseException] = {}
-    with (
-        ProcessPoolExecutor(max_workers=n_jobs, mp_context=get_context("spawn")) as pool,
-        tqdm(total=len(specs), desc="runs", disable=not progress_bar) as bar,
-    ):
-        futures = {
-            pool.submit(train_one, spec, folder): index
-            for index, (spec, folder) in enumerate(zip(specs, folders, strict=True))
-        }
-        for future in as_completed(futures):
-            error = future.exception()
-            outcomes[futures[future]] = error if error is not None else future.result()
-            bar.update()
+    pool = ProcessPoolExecutor(
+        max_workers=n_jobs, mp_context=get_context("spawn"), initializer=_worker_init, initargs=(os.getpid(),)
+    )
+    # SIGTERM (a scheduler, kill) stops the runs as Ctrl-C does (signals are the main thread's to handle)
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, signal.default_int_handler) if main_thread else None
+    try:
+        with tqdm(total=len(specs), desc="runs", disable=not progress_bar) as bar:
+            futures = {
+                pool.submit(train_one, spec, folder): index
+                for index, (spec, folder) in enumerate(zip(specs, folders, strict=True))
+            }
+            for future in as_completed(futures):
+                error = future.exception()
+                outcomes[futures[future]] = error if error is not None else future.result()
+                bar.update()
+    except KeyboardInterrupt:
+        for process in list(getattr(pool, "_processes", {}).values()):
+            process.kill()
+        pool.shutdown(wait=False, cancel_futures=True)
+        unfinished = [str(folder) for index, folder in enumerate(folders) if index not in outcomes]
+        raise Interrupted(
+            f"interrupted: {len(outcomes)} of {len(specs)} run(s) finished; {len(unfinished)} unfinished, left without "
+            f"result.json in {', '.join(unfinished)}: the same command resumes them"
+        ) from None
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
+    pool.shutdown()
     return [outcomes[index] for index in range(len(specs))]
 
 

@@ -1,0 +1,108 @@
+"""`compare`/`bench` as processes: one Ctrl-C stops every worker, a killed command takes its workers with it, and
+two commands never train into one output folder."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+GRID = """
+algorithms:
+  sac: {}
+  serasac: {}
+tasks: [Pendulum-v1]
+seeds: [0]
+n_timesteps: 100000
+eval_freq: 50000
+eval_episodes: 1
+hyperparams: {learning_starts: 100, batch_size: 32}
+"""
+
+
+def start_bench(tmp_path: Path, out: Path) -> subprocess.Popen:
+    grid = tmp_path / "grid.yml"
+    grid.write_text(GRID)
+    return subprocess.Popen(
+        [sys.executable, "-m", "sb3_sera", "bench", str(grid), "--out", str(out), "--n-jobs", "1", "--num-threads", "1"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+        start_new_session=True,  # its own process group, as a terminal's foreground job
+    )
+
+
+def wait_for_training(out: Path, timeout: float = 120.0) -> Path:
+    """The monitor file of the first run, once a worker writes episodes into it."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        monitors = [m for m in out.glob("*/*/0.monitor.csv") if len(m.read_text().splitlines()) > 2]
+        if monitors:
+            return monitors[0]
+        time.sleep(0.5)
+    raise AssertionError("no run started training")
+
+
+def assert_training_stopped(monitor: Path) -> None:
+    """No worker writes episodes any more (a Pendulum episode of SAC takes well under a second here)."""
+    time.sleep(1.0)
+    before = monitor.read_text()
+    time.sleep(4.0)
+    assert monitor.read_text() == before
+
+
+def test_one_ctrl_c_stops_every_worker(tmp_path):
+    out = tmp_path / "out"
+    bench = start_bench(tmp_path, out)
+    try:
+        monitor = wait_for_training(out)
+        os.killpg(bench.pid, signal.SIGINT)  # what a terminal's Ctrl-C sends: the whole foreground group
+        _, stderr = bench.communicate(timeout=30)
+    finally:
+        if bench.poll() is None:
+            os.killpg(bench.pid, signal.SIGKILL)
+    assert bench.returncode == 130
+    lines = stderr.strip().splitlines()
+    assert lines[-1].startswith("sb3-sera bench: interrupted: 0 of 2 run(s) finished; 2 unfinished")
+    assert "Traceback" not in stderr
+    assert_training_stopped(monitor)
+    assert not list(out.glob("*/*/result.json"))
+
+
+def test_a_killed_command_takes_its_workers_with_it(tmp_path):
+    out = tmp_path / "out"
+    bench = start_bench(tmp_path, out)
+    try:
+        monitor = wait_for_training(out)
+        bench.kill()  # SIGKILL to the command alone: no handler runs
+        bench.wait(timeout=10)
+        assert_training_stopped(monitor)
+    finally:
+        if bench.poll() is None:
+            os.killpg(bench.pid, signal.SIGKILL)
+
+
+@pytest.mark.parametrize("command", ["bench", "compare"])
+def test_two_commands_never_share_an_output_folder(tmp_path, command):
+    out = tmp_path / "out"
+    bench = start_bench(tmp_path, out)
+    try:
+        wait_for_training(out)
+        args = [str(tmp_path / "grid.yml")] if command == "bench" else ["--algos", "sac", "-n", "1000"]
+        second = subprocess.run(
+            [sys.executable, "-m", "sb3_sera", command, *args, "--out", str(out)],
+            capture_output=True,
+            text=True,
+            timeout=120,
+            env={**os.environ, "OMP_NUM_THREADS": "1"},
+        )
+        assert second.returncode == 1
+        assert f"{out} is in use by process {bench.pid}" in second.stderr
+        assert len(list(out.glob("*/*"))) == 2  # the first command's two run folders, no more
+    finally:
+        os.killpg(bench.pid, signal.SIGKILL)
+        bench.wait(timeout=10)
