@@ -7,6 +7,14 @@ from collections.abc import Callable
 
 import pytest
 
+from sb3_sera.common.mujoco_log import route_mujoco_warnings
+
+
+@pytest.fixture(autouse=True, scope="session")
+def no_mujoco_log_file() -> None:
+    """The tests leave no ``MUJOCO_LOG.TXT`` in the working directory (the commands they start route it too)."""
+    route_mujoco_warnings()
+
 
 @pytest.fixture
 def sb3_sera() -> Callable[..., subprocess.CompletedProcess]:

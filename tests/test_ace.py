@@ -5,6 +5,7 @@ import pytest
 import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
+from stable_baselines3.common.noise import VectorizedActionNoise
 
 from sb3_sera.ace import ACE
 from sb3_sera.ace.ace import DecayingNormalNoise
@@ -122,6 +123,66 @@ def test_determinism_and_multi_env():
     assert multi.num_timesteps == 60 and multi.replay_buffer.size() == 30
 
 
+def test_exploration_noise_decays_with_several_envs():
+    # SB3 gives each env its own copy of the noise (VectorizedActionNoise) when n_envs > 1: each copy decays
+    model = ACE(
+        "MlpPolicy", make_vec_env("Pendulum-v1", n_envs=2, seed=0), learning_starts=20, batch_size=8,
+        policy_kwargs=dict(feature_dim=16, hidden=8), seed=0,
+    )  # fmt: skip
+    sigmas: list[list[float]] = []
+
+    def record(locals_, globals_):
+        sigmas.append([noise.sigma for noise in locals_["self"].action_noise.noises])
+        return True
+
+    model.learn(60, callback=record)
+    assert isinstance(model.action_noise, VectorizedActionNoise) and len(sigmas) == 30
+    # Linear from 0.3 to 0 over the run (a callback sees the noise acted with at that step: 0.3 * (1 - t / 30))
+    np.testing.assert_allclose(sigmas, [[0.3 * (1 - t / 30)] * 2 for t in range(30)], atol=1e-9)
+    assert model.logger.name_to_value["train/exploration_noise"] == pytest.approx(0.0)
+
+
+def test_defaults_are_the_authors():
+    model = ACE("MlpPolicy", "Pendulum-v1")
+    assert (model.learning_rate, model.batch_size, model.tau, model.gamma) == (1e-4, 64, 1e-3, 0.99)
+    # The authors' objective: TD and reward-model losses; the next-value alignment is their option, off by default
+    assert model.align_next_value is False and model.critic_loss_weight == 10.0
+
+
+def assert_orthogonal(weight: th.Tensor, gain: float) -> None:
+    """``W W^T = gain^2 I`` on the smaller side of ``W`` (rows or columns orthonormal, then scaled)."""
+    matrix = weight if weight.shape[0] <= weight.shape[1] else weight.T
+    th.testing.assert_close(matrix @ matrix.T, gain**2 * th.eye(matrix.shape[0]), atol=1e-5 * max(gain**2, 1e-3), rtol=0)
+
+
+def test_layers_are_initialized_as_the_authors():
+    # The authors' layer_init: orthogonal weights (gain 1; 3e-3 for the actors' and the critic's output layers), zero
+    # biases (ShangtongZhang/DeepRL, PlanEnsembleDeterministicNet)
+    th.manual_seed(0)
+    network = small().policy.network
+    linears = {
+        "features": (network.features[0], 1.0),
+        "critic hidden": (network.critic_net[0], 1.0),
+        "critic output": (network.critic_net[2], 3e-3),
+        "reward hidden": (network.env_model.reward[0], 1.0),
+        "reward output": (network.env_model.reward[2], 1.0),
+        "transition state": (network.env_model.transition_state, 1.0),
+        "transition action": (network.env_model.transition_action, 1.0),
+    }
+    for name, (layer, gain) in linears.items():
+        assert_orthogonal(layer.weight.detach(), gain)
+        assert th.count_nonzero(layer.bias) == 0, name
+    heads = network.actors
+    for index in range(heads.hidden_weight.shape[0]):
+        # Stored as (in, out) for the batched product: the nn.Linear weight is the transpose
+        assert_orthogonal(heads.hidden_weight[index].detach().T, 1.0)
+        assert_orthogonal(heads.out_weight[index].detach().T, 3e-3)
+    for bias in (heads.hidden_bias, heads.out_bias):
+        assert th.count_nonzero(bias) == 0
+    # Each head has its own initialization
+    assert not th.equal(heads.hidden_weight[0], heads.hidden_weight[1])
+
+
 def test_float64_observations_train():
     # MuJoCo tasks give float64 observations, which the replay buffer keeps
     model = ACE(
@@ -142,8 +203,10 @@ def test_float64_observations_train():
         ({"tau": 1.5}, r"tau=1.5 is out of range"),
         ({"critic_loss_weight": 0.0}, r"critic_loss_weight=0.0 is out of range"),
         ({"exploration_noise": -0.1}, r"exploration_noise=-0.1 is out of range"),
-        ({"policy_kwargs": {"depth": 0}}, r"depth=0 is invalid: expected an integer >= 1"),
-        ({"policy_kwargs": {"n_actors": 0}}, r"n_actors=0 is invalid"),
+        ({"policy_kwargs": {"depth": 0}}, r"depth=0 is out of range: allowed an integer >= 1"),
+        ({"policy_kwargs": {"n_actors": 0}}, r"n_actors=0 is out of range"),
+        ({"policy_kwargs": {"n_actors": 2.5}}, r"n_actors=2.5 is invalid: expected an integer >= 1"),
+        ({"policy_kwargs": {"hidden": 0}}, r"hidden=0 is out of range"),
     ],
 )
 def test_bad_hyperparameters_are_refused(kwargs, message):

@@ -27,6 +27,7 @@ TINY_TIMING = ["--blocks", "1", "--block-steps", "2", "--threads", "1"]
             "IET",
         ),
         ("memory.py", ["--env", "Pendulum-v1", "--buffer-size", "1000", "--gradient-steps", "2"], "SERASAC"),
+        ("param_hashes.py", ["--steps", "120"], "ACE Pendulum-v1"),
     ],
 )
 def test_benchmark_script_runs(script, args, expected):

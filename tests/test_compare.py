@@ -41,7 +41,7 @@ def test_compare_cli_end_to_end(tmp_path, capsys):
         )
         assert args["hyperparams_source"].endswith(f"{algo}.yml:Pendulum-v1")
         assert {"torch", "stable-baselines3", "sb3-sera"} <= set(args["versions"])
-        # sb3_sera/hyperparams/<algo>.yml's Pendulum entry (learning rate 1e-3, as `sb3-sera train` uses), then -params
+        # hyperparams/<algo>.yml's Pendulum entry (learning rate 1e-3, as `sb3-sera train` uses), then -params
         assert config["learning_rate"] == 1e-3 and config["learning_starts"] == 100
         assert ("sera_alpha" in config) == (algo == "serasac")
         # The thread and device flags reached the worker
@@ -126,7 +126,15 @@ def test_hyperparameters_come_from_the_zoo_files():
     # This package's file for its algorithms, rl-zoo3's own for the zoo's
     spec = runs.make_spec("serasac", "serasac", "HalfCheetah-v5", 0, 20000)
     assert spec.hyperparams["learning_starts"] == 10000 and spec.hyperparams["critic_lr_max"] == 5e-4
-    assert spec.hyperparams_source.endswith("sb3_sera/hyperparams/serasac.yml:HalfCheetah-v5")
+    assert spec.hyperparams_source.endswith("hyperparams/serasac.yml:HalfCheetah-v5")
     sac = runs.make_spec("sac", "sac", "Pendulum-v1", 0, 1000, {"batch_size": 64})
     assert sac.hyperparams == {"policy": "MlpPolicy", "learning_rate": 1e-3, "batch_size": 64}
     assert "rl_zoo3" in sac.hyperparams_source
+
+
+def test_default_threads_follow_omp_num_threads(monkeypatch):
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert runs.default_threads(1) == 1
+    monkeypatch.delenv("OMP_NUM_THREADS")
+    monkeypatch.setattr(runs.os, "cpu_count", lambda: 8)
+    assert runs.default_threads(1) == 8 and runs.default_threads(3) == 2 and runs.default_threads(16) == 1

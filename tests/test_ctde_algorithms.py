@@ -1,6 +1,8 @@
 """The CTDE policies and algorithms: decentralized actors, centralized critics, training, save/load, execution."""
 
 import copy
+import json
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -49,11 +51,55 @@ def test_decentralized_controllers(algo, tmp_path):
     for agent, action in actions.items():
         assert env.agent_action_spaces[agent].contains(action)
     controllers.save(tmp_path / "controllers")
-    saved = [th.load(path, weights_only=False)["state_dict"] for path in (tmp_path / "controllers").glob("*.pth")]
+    # Tensors only: a weights_only load reads them
+    saved = [th.load(path, weights_only=True) for path in (tmp_path / "controllers").glob("*.pth")]
     assert len(saved) == 3 and not any("critic" in key or "value" in key for state in saved for key in state)
+    assert all(isinstance(tensor, th.Tensor) for state in saved for tensor in state.values())
     reloaded = DecentralizedActors.load(tmp_path / "controllers")
     for agent, action in reloaded(local).items():
         np.testing.assert_array_equal(action, actions[agent])
+
+
+class _WritesMarker:
+    """What a crafted weights file unpickles to: an object whose unpickling runs code (here: creates a file)."""
+
+    def __init__(self, marker: Path):
+        self.marker = marker
+
+    def __reduce__(self):
+        return (Path.touch, (self.marker,))
+
+
+def test_loading_controllers_runs_no_code_from_the_files(tmp_path):
+    model = MASAC("CTDEPolicy", "sb3_sera/SimpleSpread-v0", seed=0, **OFF_POLICY)
+    folder = tmp_path / "controllers"
+    DecentralizedActors.from_model(model).save(folder)
+    marker = tmp_path / "marker"
+    # A crafted actor_0.pth: unpickling it would create the marker file
+    th.save({"state_dict": _WritesMarker(marker)}, folder / "actor_0.pth")
+    with pytest.raises(ValueError, match=r"actor_0\.pth.*not a weights-only file"):
+        DecentralizedActors.load(folder)
+    assert not marker.exists()
+    # agents.json cannot point outside the folder nor name a class
+    DecentralizedActors.from_model(model).save(folder)
+    saved = json.loads((folder / "agents.json").read_text())
+
+    def write_agent_0(**changes):
+        agents = {**saved["agents"], "agent_0": {**saved["agents"]["agent_0"], **changes}}
+        (folder / "agents.json").write_text(json.dumps({**saved, "agents": agents}))
+
+    for field, value, message in (
+        ("file", "../actor_0.pth", r"file='\.\./actor_0\.pth' is invalid"),
+        ("kind", "pickle", r"kind='pickle' is invalid: expected one of"),
+        ("arguments", {**saved["agents"]["agent_0"]["arguments"], "activation_fn": {"module": "os.system"}}, "os.system"),
+    ):
+        write_agent_0(**{field: value})
+        with pytest.raises(ValueError, match=message):
+            DecentralizedActors.load(folder)
+    # Controllers saved before the format held no pickle are refused with the way out
+    (folder / "agents.json").write_text(json.dumps(saved["agents"]))
+    with pytest.raises(ValueError, match=r"format=None, expected 2.*DecentralizedActors.from_model\(model\).save"):
+        DecentralizedActors.load(folder)
 
 
 @pytest.mark.parametrize("algo", [SERASAC, MASAC, MATD3], ids=lambda algo: algo.__name__)

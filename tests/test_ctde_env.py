@@ -302,3 +302,25 @@ def test_any_parallel_env_without_state():
     shared = CTDEEnv(TwoPoints(), agent_indicator=True)
     observation, _ = shared.reset(seed=0)
     np.testing.assert_array_equal(observation["b"], [-3.0, 0.5, 0.0, 10.0])
+
+
+def test_commands_route_mujoco_warnings_and_write_no_log_file(tmp_path):
+    import subprocess
+    import sys
+
+    script = (
+        "import warnings, gymnasium as gym, mujoco\n"
+        "from sb3_sera.common.mujoco_log import route_mujoco_warnings\n"
+        "route_mujoco_warnings()\n"
+        "with warnings.catch_warnings(record=True) as caught:\n"
+        "    warnings.simplefilter('always')\n"
+        "    gym.make('HalfCheetah-v5').reset(seed=0)\n"
+        "    mujoco.get_mju_user_warning()('another warning')\n"
+        "print([str(w.message) for w in caught])\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert "settotalmass" not in done.stdout + done.stderr
+    # Any other MuJoCo warning reaches Python's warnings, where a filter can silence or raise it
+    assert "['MuJoCo: another warning']" in done.stdout
+    assert not (tmp_path / "MUJOCO_LOG.TXT").exists()

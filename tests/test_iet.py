@@ -234,6 +234,39 @@ def test_run_evaluate_save_load_and_continue(tmp_path):
     assert LATENT_KEY in bare.get_env().observation_space.spaces
 
 
+@pytest.mark.parametrize("seeded_env", [True, False], ids=["seeded env", "unseeded env"])
+def test_two_loads_continue_the_same(tmp_path, seeded_env):
+    model = IET("CTDEPolicy", ENV_ID, seed=0, **SMALL).learn(120)
+    model.save(tmp_path / "model")
+    model.save_replay_buffer(tmp_path / "buffer")
+
+    def load_and_continue():
+        # A loaded model's env is seeded from the model's seed, as SB3's load seeds it, and its latents continue the
+        # saved latent generator
+        env = make_vec_env(ENV_ID, seed=5) if seeded_env else gym.make(ENV_ID)
+        loaded = IET.load(tmp_path / "model", env=env)
+        loaded.load_replay_buffer(tmp_path / "buffer")
+        loaded.learn(60, reset_num_timesteps=False)
+        return loaded
+
+    first, second = load_and_continue(), load_and_continue()
+    np.testing.assert_array_equal(first.replay_buffer.observations[LATENT_KEY], second.replay_buffer.observations[LATENT_KEY])
+    for (name, a), b in zip(first.policy.state_dict().items(), second.policy.state_dict().values(), strict=True):
+        assert th.equal(a, b), name
+
+
+def test_a_loaded_model_continues_the_saved_latent_generator(tmp_path):
+    model = IET("CTDEPolicy", ENV_ID, seed=0, **SMALL).learn(60)
+    model.save(tmp_path / "model")
+    expected = model.env.rng.standard_normal(4)
+    loaded = IET.load(tmp_path / "model", env=gym.make(ENV_ID))
+    np.testing.assert_array_equal(loaded.env.rng.standard_normal(4), expected)
+    # seed= given to load() reseeds the latents, as it reseeds everything else
+    reseeded = [IET.load(tmp_path / "model", env=gym.make(ENV_ID), seed=7).env.rng.standard_normal(4) for _ in range(2)]
+    np.testing.assert_array_equal(*reseeded)
+    assert not np.array_equal(reseeded[0], expected)
+
+
 def test_determinism():
     def train():
         model = IET("CTDEPolicy", ENV_ID, seed=3, **SMALL).learn(120)

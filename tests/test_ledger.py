@@ -41,7 +41,7 @@ def bench_out(tmp_path_factory) -> Path:
 def test_runs_record_their_commit_and_no_absolute_path(bench_out):
     args = read_record(next(bench_out.glob("serasac/*/*/args.yml")))
     assert len(args["git_commit"]) == 40 and isinstance(args["git_clean"], bool)
-    assert args["hyperparams_source"] == "sb3_sera/hyperparams/serasac.yml:Pendulum-v1"
+    assert args["hyperparams_source"] == "hyperparams/serasac.yml:Pendulum-v1"
     assert not ledger._absolute_paths(args)
 
 

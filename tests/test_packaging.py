@@ -22,7 +22,8 @@ def wheel(tmp_path_factory) -> tuple[Path, str]:
     source = tmp_path_factory.mktemp("source")
     for name in ("pyproject.toml", "setup.cfg", "README.md"):
         shutil.copy(ROOT / name, source / name)
-    shutil.copytree(ROOT / "sb3_sera", source / "sb3_sera", ignore=shutil.ignore_patterns("__pycache__"))
+    for folder in ("sb3_sera", "hyperparams"):
+        shutil.copytree(ROOT / folder, source / folder, ignore=shutil.ignore_patterns("__pycache__"))
     dist = tmp_path_factory.mktemp("dist")
     build = f"from setuptools import build_meta; print(build_meta.build_wheel({str(dist)!r}))"
     completed = subprocess.run(
@@ -35,7 +36,12 @@ def wheel(tmp_path_factory) -> tuple[Path, str]:
 def test_the_wheel_ships_the_hyperparameter_files_and_builds_without_deprecations(wheel):
     path, output = wheel
     names = zipfile.ZipFile(path).namelist()
+    # The top-level hyperparams/ mapped into the package, every file of it
+    assert {f"sb3_sera/hyperparams/{path.name}" for path in (ROOT / "hyperparams").glob("*.yml")} <= set(names)
     assert {f"sb3_sera/hyperparams/{algo}.yml" for algo in ZOO_ALGOS} <= set(names)
+    # Every package of the source tree is in the wheel (pyproject.toml lists them)
+    packages = {path.parent.relative_to(ROOT).as_posix() for path in (ROOT / "sb3_sera").rglob("__init__.py")}
+    assert {f"{package}/__init__.py" for package in packages} <= set(names)
     metadata = zipfile.ZipFile(path).read(f"sb3_sera-{__version__}.dist-info/METADATA").decode()
     assert "License-Expression: MIT" in metadata
     assert "Provides-Extra: plots" in metadata and "rl_zoo3[plots]" in metadata
@@ -58,6 +64,27 @@ def test_an_installed_package_finds_its_default_hyperparameters(wheel, tmp_path)
     package_file, config = completed.stdout.split()
     assert Path(package_file).is_relative_to(target)
     assert Path(config) == target / "sb3_sera" / "hyperparams" / "serasac.yml" and Path(config).exists()
+
+
+def test_a_checkout_reads_the_top_level_hyperparameter_files():
+    from sb3_sera.experiments.zoo import HYPERPARAMS_DIR
+
+    assert HYPERPARAMS_DIR == ROOT / "hyperparams"
+    assert not (ROOT / "sb3_sera" / "hyperparams").exists()  # one source of the files
+
+
+def test_sb3_sera_train_finds_its_hyperparameters_from_an_installed_wheel(wheel, tmp_path):
+    target = tmp_path / "site"
+    install = [sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-index", "--target", str(target)]
+    assert subprocess.run([*install, str(wheel[0])], capture_output=True, timeout=600).returncode == 0
+    train = [sys.executable, "-m", "sb3_sera", "train", "--algo", "serasac", "--env", "Pendulum-v1", "-n", "300"]
+    train += ["-f", str(tmp_path / "logs"), "-params", "learning_starts:100", "--seed", "0"]
+    environment = {**os.environ, "PYTHONPATH": str(target), "OMP_NUM_THREADS": "1"}
+    completed = subprocess.run(train, cwd=tmp_path, env=environment, capture_output=True, text=True, timeout=600)
+    assert completed.returncode == 0, completed.stderr[-3000:]
+    # The zoo's record of the run: the installed file's Pendulum-v1 entry (learning rate 1e-3)
+    config = (tmp_path / "logs" / "serasac" / "Pendulum-v1_1" / "Pendulum-v1" / "config.yml").read_text()
+    assert "learning_rate" in config and "0.001" in config
 
 
 def test_version_flag(capsys):

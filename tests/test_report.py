@@ -208,6 +208,10 @@ def test_paper_figures_from_a_tiny_fixture(tmp_path):
 def test_report_refuses_to_overwrite_and_needs_runs(tmp_path, capsys):
     fake_run(tmp_path / "runs", "serasac", 1, 0, [0.0, 1.0, 2.0])
     main(["report", str(tmp_path / "runs"), "--out", str(tmp_path / "out"), "--reps", str(REPS)])
+    # What the report is doing, on stderr
+    progress = capsys.readouterr().err
+    assert "report: 1 finished runs, 0 folders left out" in progress
+    assert "report: section 1/1, sb3_sera/HalfCheetah-6x1-v0 at 3,000 steps: table, claims, figures" in progress
     with pytest.raises(SystemExit) as exit_info:
         main(["report", str(tmp_path / "runs"), "--out", str(tmp_path / "out")])
     assert exit_info.value.code == 2

@@ -203,3 +203,18 @@ def test_tensorboard_runs_are_named_after_the_algorithm(algo, tmp_path):
     model.learn(60, reset_num_timesteps=False, tb_log_name="mine")
     # SB3 continues the latest run of that name when reset_num_timesteps=False (id 0: there was none)
     assert sorted(path.name for path in tmp_path.iterdir()) == [f"{algo.__name__}_1", "mine_0"]
+
+
+@pytest.mark.parametrize("algo", [SERASAC, SUNRISE, ACE])
+def test_learn_warns_when_it_would_train_nothing(algo):
+    model = algo("MlpPolicy", "Pendulum-v1", **{**SMALL, "learning_starts": 100})
+    with pytest.warns(
+        UserWarning, match=rf"{algo.__name__}.learn: learning_starts=100 is at or beyond the end of this call \(50 steps\)"
+    ):
+        model.learn(50)
+    # Continued: 50 + 30 steps still end before the first gradient step; 50 + 60 do not
+    with pytest.warns(UserWarning, match=r"\(80 steps\)"):
+        model.learn(30, reset_num_timesteps=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        model.learn(60, reset_num_timesteps=False)

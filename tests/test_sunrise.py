@@ -1,5 +1,6 @@
 """SUNRISE as an SB3 algorithm: its math on hand values, batched equals looped, acting, save/load, zoo, errors."""
 
+import copy
 import math
 
 import gymnasium as gym
@@ -350,6 +351,28 @@ def test_save_load_and_continue_with_the_replay_buffer(tmp_path):
     assert SUNRISE.load(tmp_path / "model", ucb_lambda=2.0).policy.ucb_lambda == 2.0
     mean_return, _ = evaluate_policy(loaded, loaded.get_env(), n_eval_episodes=1)
     assert np.isfinite(mean_return)
+
+
+@pytest.mark.parametrize("ucb_lambda", [0.0, 0.5])
+def test_save_load_continue_equals_continuing_in_memory(tmp_path, ucb_lambda):
+    # Stopped mid-episode (Pendulum's last 200 steps): with ucb_lambda=0 the member acting in it must be kept
+    model = SUNRISE("MlpPolicy", ENV_ID, seed=0, n_members=3, ucb_lambda=ucb_lambda, **SMALL).learn(150)
+    model.save(tmp_path / "model")
+    model.save_replay_buffer(tmp_path / "buffer")
+    loaded = SUNRISE.load(tmp_path / "model", env=copy.deepcopy(model.get_env()), force_reset=False)
+    loaded.load_replay_buffer(tmp_path / "buffer")
+    for continued in (model, loaded):
+        continued.set_random_seed(1)
+        continued.learn(100, reset_num_timesteps=False)
+    assert_same_state(snapshot(model), snapshot(loaded))
+
+
+def test_a_new_episode_after_a_reset_gets_a_new_member():
+    model = SUNRISE("MlpPolicy", ENV_ID, seed=0, n_members=50, **SMALL).learn(60)
+    acting = model._episode_members.copy()
+    # learn() resets the env for a new run: the next episode is acted in by a member drawn for it
+    model.learn(1, reset_num_timesteps=True)
+    assert model._episode_members is not None and not np.array_equal(model._episode_members, acting)
 
 
 def test_policy_saves_and_loads_alone(tmp_path):

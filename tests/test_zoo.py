@@ -13,6 +13,7 @@ import pytest
 import yaml
 
 from sb3_sera import SERASAC
+from sb3_sera.experiments.cli import main
 from sb3_sera.experiments.zoo import (
     HYPERPARAMS_DIR,
     MULTI_AGENT_ALGOS,
@@ -186,3 +187,18 @@ def test_ace_sampler_and_stored_trial():
     params = hyperparams_opt.HYPERPARAMS_SAMPLER["ace"](trial, 1, 1, {})
     assert set(params["policy_kwargs"]) == {"n_actors", "depth"}
     assert hyperparams_opt.HYPERPARAMS_CONVERTER["ace"](dict(trial.params)) == params
+
+
+@pytest.mark.parametrize(
+    ("algo", "env", "message"),
+    [
+        ("iet", "Pendulum-v1", r"iet is multi-agent only: train it on a CTDE task \(sb3_sera/"),
+        ("sunrise", "sb3_sera/SimpleSpread-v0", r"sunrise is single-agent only"),
+        ("ace", "sb3_sera/HalfCheetah-6x1-v0", r"ace is single-agent only"),
+    ],
+)
+def test_an_algorithm_on_a_task_of_the_other_kind_is_refused_with_the_reason(algo, env, message, capsys):
+    with pytest.raises(ValueError, match=message):
+        zoo_argv("train", ["--algo", algo, "--env", env])
+    with pytest.raises(SystemExit, match=message):
+        main(["train", "--algo", algo, "--env", env, "-n", "10"])

@@ -6,14 +6,24 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
-from stable_baselines3.common.noise import ActionNoise
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.noise import ActionNoise, VectorizedActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.type_aliases import GymEnv, Schedule
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.utils import polyak_update
 
 from sb3_sera.ace.policies import ACEPolicy, MlpPolicy
-from sb3_sera.common.checks import check_range
+from sb3_sera.common.arguments import check_gymnasium_env, checks_keywords
+from sb3_sera.common.checks import (
+    check_choice,
+    check_finite,
+    check_hyperparameters,
+    check_range,
+    check_replay_batch,
+    gradient_step_context,
+    with_env_step_check,
+)
 from sb3_sera.common.naming import NamedRuns
 
 
@@ -45,32 +55,37 @@ class ACE(NamedRuns, OffPolicyAlgorithm):
     shared state feature, with learned reward and transition models in feature space. Each action is chosen by a
     look-ahead tree of depth ``depth`` over the heads' proposals (:mod:`sb3_sera.ace.tree`), plus Gaussian noise
     decaying linearly from ``exploration_noise`` to 0 over the run. The critic regresses the tree's value on
-    ``r + gamma * V_d(s')`` from the target network, with the reward model's loss and the next-value alignment loss,
-    all weighted by ``critic_loss_weight``; the heads ascend the tree's value of their own actions, averaged over
-    heads. Not the 2024 causality-aware "ACE".
+    ``r + gamma * V_d(s')`` from the target network, with the reward model's loss, both weighted by
+    ``critic_loss_weight`` (the authors' objective); the heads ascend the tree's value of their own actions, averaged
+    over heads. Not the 2024 causality-aware "ACE".
 
     Defaults are the authors': Adam 1e-4 for every network, batch 64, tau 1e-3, gamma 0.99, five heads, depth 2,
-    running observation normalization (policy kwarg ``normalize_observations``).
+    running observation normalization (policy kwarg ``normalize_observations``), orthogonal initialization.
+
+    A non-finite reward or observation from the env, in a replayed batch or in a loss stops training with a
+    ``FloatingPointError`` that names it, before it changes a parameter or the observation normalizer.
 
     :param policy: ``"MlpPolicy"`` (flat Box observations)
     :param env: the environment (a Box action space)
     :param learning_rate: Adam's learning rate for every network, > 0, or a schedule
-    :param buffer_size: replay buffer size
-    :param learning_starts: steps of uniform random actions before learning starts
-    :param batch_size: minibatch size
+    :param buffer_size: replay buffer size, >= 1
+    :param learning_starts: steps of uniform random actions before learning starts, >= 0
+    :param batch_size: minibatch size, >= 1
     :param tau: Polyak coefficient of the target network, in [0, 1]
     :param gamma: discount factor, in [0, 1] (also the tree's)
-    :param train_freq: update every ``train_freq`` steps, or ``(n, "step" | "episode")``
-    :param gradient_steps: gradient steps per rollout (-1: as many as env steps)
-    :param action_noise: exploration noise; None: :class:`DecayingNormalNoise` from ``exploration_noise``
+    :param train_freq: update every ``train_freq`` steps, or ``(n, "step" | "episode")``, n >= 1
+    :param gradient_steps: gradient steps per rollout, >= 0 (-1: as many as env steps)
+    :param action_noise: exploration noise; None: :class:`DecayingNormalNoise` from ``exploration_noise`` (with
+        several envs, SB3 gives each its own copy: every copy decays)
     :param exploration_noise: initial standard deviation of the decaying Gaussian noise, >= 0 (0: none)
-    :param critic_loss_weight: weight of the critic's, reward model's and next-value losses, > 0
-    :param align_next_value: add the authors' loss aligning the tree's predicted next value with the target's
+    :param critic_loss_weight: weight of the critic's and reward model's losses (and the next-value loss), > 0
+    :param align_next_value: also regress the tree's predicted next value ``V_{d-1}(phi_hat')`` on the target
+        network's ``V_d(s')``: the authors' ``align_next_v`` option, off in their runs and by default here
     :param replay_buffer_class: replay buffer class
     :param replay_buffer_kwargs: its keyword arguments
     :param optimize_memory_usage: SB3's memory-efficient buffer
-    :param n_steps: n-step returns when > 1
-    :param stats_window_size: window of the rollout statistics
+    :param n_steps: n-step returns when > 1, >= 1
+    :param stats_window_size: window of the rollout statistics, >= 1
     :param tensorboard_log: TensorBoard folder
     :param policy_kwargs: :class:`~sb3_sera.ace.policies.ACEPolicy`'s (``n_actors``, ``depth``, ``feature_dim``,
         ``hidden``, ``normalize_observations``)
@@ -88,6 +103,7 @@ class ACE(NamedRuns, OffPolicyAlgorithm):
     }
     policy: ACEPolicy
 
+    @checks_keywords
     def __init__(
         self,
         policy: str | type[ACEPolicy],
@@ -103,7 +119,7 @@ class ACE(NamedRuns, OffPolicyAlgorithm):
         action_noise: ActionNoise | None = None,
         exploration_noise: float = 0.3,
         critic_loss_weight: float = 10.0,
-        align_next_value: bool = True,
+        align_next_value: bool = False,
         replay_buffer_class: type[ReplayBuffer] | None = None,
         replay_buffer_kwargs: dict[str, Any] | None = None,
         optimize_memory_usage: bool = False,
@@ -116,24 +132,34 @@ class ACE(NamedRuns, OffPolicyAlgorithm):
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ) -> None:
+        check_gymnasium_env(type(self).__name__, env, multi_agent=False)
+        checked = check_hyperparameters(
+            dict(
+                learning_rate=learning_rate,
+                buffer_size=buffer_size,
+                learning_starts=learning_starts,
+                batch_size=batch_size,
+                tau=tau,
+                gamma=gamma,
+                train_freq=train_freq,
+                gradient_steps=gradient_steps,
+                n_steps=n_steps,
+                stats_window_size=stats_window_size,
+            )
+        )
+        self.exploration_noise = check_range("exploration_noise", exploration_noise, 0.0, None)
+        self.critic_loss_weight = check_range("critic_loss_weight", critic_loss_weight, 0.0, None, low_inclusive=False)
+        check_choice("align_next_value", align_next_value, (True, False))
+        self.align_next_value = align_next_value
         super().__init__(
             policy,
             env,
-            learning_rate,
-            buffer_size,
-            learning_starts,
-            batch_size,
-            tau,
-            gamma,
-            train_freq,
-            gradient_steps,
+            **checked,
             action_noise=action_noise,
             replay_buffer_class=replay_buffer_class,
             replay_buffer_kwargs=replay_buffer_kwargs,
             optimize_memory_usage=optimize_memory_usage,
-            n_steps=n_steps,
             policy_kwargs=policy_kwargs,
-            stats_window_size=stats_window_size,
             tensorboard_log=tensorboard_log,
             verbose=verbose,
             device=device,
@@ -142,15 +168,6 @@ class ACE(NamedRuns, OffPolicyAlgorithm):
             supported_action_spaces=(spaces.Box,),
             support_multi_env=True,
         )
-        if not callable(learning_rate):
-            check_range("learning_rate", learning_rate, 0.0, None, low_inclusive=False)
-        check_range("tau", tau, 0.0, 1.0)
-        check_range("gamma", gamma, 0.0, 1.0)
-        check_range("exploration_noise", exploration_noise, 0.0, None)
-        check_range("critic_loss_weight", critic_loss_weight, 0.0, None, low_inclusive=False)
-        self.exploration_noise = float(exploration_noise)
-        self.critic_loss_weight = float(critic_loss_weight)
-        self.align_next_value = align_next_value
         if _init_setup_model:
             self._setup_model()
 
@@ -162,10 +179,19 @@ class ACE(NamedRuns, OffPolicyAlgorithm):
             n_actions = int(np.prod(self.action_space.shape))  # type: ignore[arg-type]
             self.action_noise = DecayingNormalNoise(self.exploration_noise, n_actions)
 
+    def decaying_noises(self) -> list[DecayingNormalNoise]:
+        """The decaying exploration noises: the model's, or each env's copy of it (SB3's ``VectorizedActionNoise``)."""
+        noises = self.action_noise.noises if isinstance(self.action_noise, VectorizedActionNoise) else [self.action_noise]
+        return [noise for noise in noises if isinstance(noise, DecayingNormalNoise)]
+
     def _on_step(self) -> None:
         # The exploration noise decays linearly to 0 over the run
-        if isinstance(self.action_noise, DecayingNormalNoise):
-            self.action_noise.sigma = self.action_noise.initial_sigma * self._current_progress_remaining
+        for noise in self.decaying_noises():
+            noise.sigma = noise.initial_sigma * self._current_progress_remaining
+
+    def _init_callback(self, callback: MaybeCallback, progress_bar: bool = False) -> BaseCallback:
+        # Non-finite rewards and observations are refused at the env step that gives them, before the normalizer
+        return super()._init_callback(with_env_step_check(callback), progress_bar)
 
     def _store_transition(
         self,
@@ -192,8 +218,10 @@ class ACE(NamedRuns, OffPolicyAlgorithm):
         network, optimizer = self.policy.network, self.policy.optimizer
         actor_parameters = network.actor_parameters()
         losses: dict[str, list[float]] = {"critic_loss": [], "reward_loss": [], "next_value_loss": [], "actor_loss": []}
-        for _ in range(gradient_steps):
+        for gradient_step in range(gradient_steps):
             replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
+            where = gradient_step_context(self, gradient_step)
+            check_replay_batch(replay_data, where)
             discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
             with th.no_grad():
                 # y = r + gamma (1 - done) V_d(s') from the target network's tree
@@ -205,14 +233,19 @@ class ACE(NamedRuns, OffPolicyAlgorithm):
             current = self.policy.tree(features, replay_data.actions)
             critic_loss = 0.5 * (current.q_value - target_q_values).pow(2).mean()
             loss = critic_loss
+            # Nothing has changed yet: stop here if a value is not finite (a cause named before its consequences)
+            quantities = {"TD target": target_q_values, "critic loss": critic_loss}
             if current.reward is not None:
                 reward_loss = 0.5 * (current.reward - replay_data.rewards).pow(2).mean()
                 loss = loss + reward_loss
+                quantities["reward model loss"] = reward_loss
                 losses["reward_loss"].append(reward_loss.item())
                 if self.align_next_value and current.next_value is not None:
                     next_value_loss = 0.5 * (current.next_value - next_values).pow(2).mean()
                     loss = loss + next_value_loss
+                    quantities["next-value loss"] = next_value_loss
                     losses["next_value_loss"].append(next_value_loss.item())
+            check_finite(quantities, where)
             optimizer.zero_grad()
             (self.critic_loss_weight * loss).backward()
             optimizer.step()
@@ -223,6 +256,7 @@ class ACE(NamedRuns, OffPolicyAlgorithm):
             proposals = network.actors(features)
             expanded = features.detach().unsqueeze(1).expand(-1, proposals.shape[1], -1)
             actor_loss = -self.policy.tree(expanded, proposals).q_value.mean()
+            check_finite({"actor loss": actor_loss}, where)
             optimizer.zero_grad()
             actor_loss.backward(inputs=actor_parameters)
             optimizer.step()
@@ -235,8 +269,9 @@ class ACE(NamedRuns, OffPolicyAlgorithm):
         for name, values in losses.items():
             if values:
                 self.logger.record(f"train/{name}", float(np.mean(values)))
-        if isinstance(self.action_noise, DecayingNormalNoise):
-            self.logger.record("train/exploration_noise", self.action_noise.sigma)
+        noises = self.decaying_noises()
+        if noises:
+            self.logger.record("train/exploration_noise", float(np.mean([noise.sigma for noise in noises])))
         with th.no_grad():
             _, heads = self.policy.choose(replay_data.observations)
         # Which head the tree picks, over the last batch: the share of the most picked one and the number picked

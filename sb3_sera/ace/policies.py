@@ -10,9 +10,37 @@ from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
 from sb3_sera.ace.tree import best_actions, head_values, state_value, tree_value
+from sb3_sera.common.checks import check_int, check_range
 
 #: Clip of the normalized observations (the authors' normalizer)
 OBS_CLIP = 10.0
+#: Scale of the orthogonal weights of the actors' and the critic's output layers (the authors' ``layer_init(..., 3e-3)``)
+OUTPUT_GAIN = 3e-3
+
+
+def layer_init(layer: nn.Linear, gain: float = 1.0) -> nn.Linear:
+    """
+    The authors' initialization (ShangtongZhang/DeepRL, ``layer_init``): orthogonal weights times ``gain``, zero
+    biases.
+
+    :param layer: the layer, initialized in place
+    :param gain: scale of the orthogonal weights (1; :data:`OUTPUT_GAIN` for the actors' and the critic's outputs)
+    :return: the layer
+    """
+    nn.init.orthogonal_(layer.weight, gain=gain)
+    nn.init.zeros_(layer.bias)
+    return layer
+
+
+def orthogonal_stack(n_heads: int, in_features: int, out_features: int, gain: float = 1.0) -> th.Tensor:
+    """
+    ``n_heads`` weights initialized each as :func:`layer_init` initializes an ``nn.Linear(in_features,
+    out_features)``, stacked as :class:`ActorHeads` stores them: ``(n_heads, in_features, out_features)``.
+    """
+    weights = th.empty(n_heads, out_features, in_features)
+    for weight in weights:
+        nn.init.orthogonal_(weight, gain=gain)
+    return weights.transpose(1, 2).contiguous()
 
 
 class RunningObservationNorm(nn.Module):
@@ -55,17 +83,12 @@ class ActorHeads(nn.Module):
 
     def __init__(self, feature_dim: int, action_dim: int, n_heads: int, hidden: int) -> None:
         super().__init__()
-        self.hidden_weight = nn.Parameter(th.empty(n_heads, feature_dim, hidden))
+        # Each head initialized as the authors initialize their per-actor layers (layer_init): orthogonal weights, the
+        # output layer's scaled by 3e-3, zero biases
+        self.hidden_weight = nn.Parameter(orthogonal_stack(n_heads, feature_dim, hidden))
         self.hidden_bias = nn.Parameter(th.zeros(n_heads, hidden))
-        self.out_weight = nn.Parameter(th.empty(n_heads, hidden, action_dim))
+        self.out_weight = nn.Parameter(orthogonal_stack(n_heads, hidden, action_dim, gain=OUTPUT_GAIN))
         self.out_bias = nn.Parameter(th.zeros(n_heads, action_dim))
-        for index in range(n_heads):
-            # Each head initialized as its own nn.Linear would be (the authors' last layer: uniform +-3e-3)
-            nn.init.kaiming_uniform_(self.hidden_weight.data[index].T, a=5**0.5)
-            nn.init.uniform_(self.out_weight.data[index], -3e-3, 3e-3)
-        bound = 1 / feature_dim**0.5
-        nn.init.uniform_(self.hidden_bias, -bound, bound)
-        nn.init.uniform_(self.out_bias, -3e-3, 3e-3)
 
     def forward(self, features: th.Tensor) -> th.Tensor:
         hidden = th.tanh(th.einsum("...f,kfh->...kh", features, self.hidden_weight) + self.hidden_bias)
@@ -80,14 +103,16 @@ class ActorHeads(nn.Module):
 class EnvironmentModel(nn.Module):
     """
     The authors' reward and transition models in feature space: ``r_hat = W2 tanh(W1 [phi, a])`` and a residual
-    next feature ``phi' = phi + tanh(T1 phi)``, then ``phi' + tanh(T2 [phi', a])``.
+    next feature ``phi' = phi + tanh(T1 phi)``, then ``phi' + tanh(T2 [phi', a])`` (every layer :func:`layer_init`'s).
     """
 
     def __init__(self, feature_dim: int, action_dim: int, hidden: int) -> None:
         super().__init__()
-        self.reward = nn.Sequential(nn.Linear(feature_dim + action_dim, hidden), nn.Tanh(), nn.Linear(hidden, 1))
-        self.transition_state = nn.Linear(feature_dim, feature_dim)
-        self.transition_action = nn.Linear(feature_dim + action_dim, feature_dim)
+        self.reward = nn.Sequential(
+            layer_init(nn.Linear(feature_dim + action_dim, hidden)), nn.Tanh(), layer_init(nn.Linear(hidden, 1))
+        )
+        self.transition_state = layer_init(nn.Linear(feature_dim, feature_dim))
+        self.transition_action = layer_init(nn.Linear(feature_dim + action_dim, feature_dim))
 
     def forward(self, features: th.Tensor, actions: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
         reward = self.reward(th.cat([features, actions], dim=-1))
@@ -97,18 +122,23 @@ class EnvironmentModel(nn.Module):
 
 
 class ACENetwork(nn.Module):
-    """Observation normalizer, shared feature ``phi``, actor heads, critic and environment model."""
+    """
+    Observation normalizer, shared feature ``phi``, actor heads, critic and environment model, initialized as the
+    authors' (:func:`layer_init`: orthogonal weights, zero biases; the critic's output scaled by 3e-3).
+    """
 
     def __init__(
         self, obs_dim: int, action_dim: int, n_actors: int, feature_dim: int, hidden: int, normalize_observations: bool
     ) -> None:
         super().__init__()
         self.normalizer = RunningObservationNorm(obs_dim) if normalize_observations else None
-        self.features = nn.Sequential(nn.Linear(obs_dim, feature_dim), nn.Tanh())
+        self.features = nn.Sequential(layer_init(nn.Linear(obs_dim, feature_dim)), nn.Tanh())
         self.actors = ActorHeads(feature_dim, action_dim, n_actors, hidden)
-        critic_head = nn.Linear(hidden, 1)
-        nn.init.uniform_(critic_head.weight, -3e-3, 3e-3)
-        self.critic_net = nn.Sequential(nn.Linear(feature_dim + action_dim, hidden), nn.Tanh(), critic_head)
+        self.critic_net = nn.Sequential(
+            layer_init(nn.Linear(feature_dim + action_dim, hidden)),
+            nn.Tanh(),
+            layer_init(nn.Linear(hidden, 1), gain=OUTPUT_GAIN),
+        )
         self.env_model = EnvironmentModel(feature_dim, action_dim, hidden)
 
     def phi(self, observations: th.Tensor) -> th.Tensor:
@@ -164,10 +194,8 @@ class ACEPolicy(BasePolicy):
                 f"ACE takes flat Box observations, got {observation_space}: it is single-agent (no CTDE tasks) and "
                 "has no image or Dict feature extractor"
             )
-        if isinstance(n_actors, bool) or not isinstance(n_actors, (int, np.integer)) or n_actors < 1:
-            raise ValueError(f"n_actors={n_actors!r} is invalid: expected an integer >= 1")
-        if isinstance(depth, bool) or not isinstance(depth, (int, np.integer)) or depth < 1:
-            raise ValueError(f"depth={depth!r} is invalid: expected an integer >= 1")
+        n_actors, depth = check_int("n_actors", n_actors, 1), check_int("depth", depth, 1)
+        feature_dim, hidden = check_int("feature_dim", feature_dim, 1), check_int("hidden", hidden, 1)
         super().__init__(
             observation_space,
             action_space,
@@ -175,7 +203,7 @@ class ACEPolicy(BasePolicy):
             optimizer_kwargs=optimizer_kwargs,
             squash_output=True,
         )
-        self.n_actors, self.depth, self.gamma = int(n_actors), int(depth), float(gamma)
+        self.n_actors, self.depth, self.gamma = n_actors, depth, check_range("gamma", gamma, 0.0, 1.0)
         self.feature_dim, self.hidden, self.normalize_observations = feature_dim, hidden, normalize_observations
         dims = (int(observation_space.shape[0]), int(np.prod(action_space.shape)), self.n_actors, feature_dim, hidden)
         self.network = ACENetwork(*dims, normalize_observations)

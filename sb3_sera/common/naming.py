@@ -1,5 +1,9 @@
-"""What every algorithm of the package shares with SB3's own: its TensorBoard runs are named after it."""
+"""
+What every algorithm of the package shares with SB3's own: its TensorBoard runs are named after it; and what it adds:
+a warning when ``learn`` would end before the first gradient step.
+"""
 
+import warnings
 from typing import TypeVar
 
 from stable_baselines3.common.base_class import BaseAlgorithm
@@ -11,7 +15,9 @@ SelfNamedRuns = TypeVar("SelfNamedRuns", bound="NamedRuns")
 class NamedRuns(BaseAlgorithm):
     """
     First in an algorithm's bases: ``learn``'s TensorBoard run is named after the algorithm's class (``SERASAC_1``,
-    ``IET_1``, ...), as each SB3 algorithm writes out its own name as ``tb_log_name``'s default.
+    ``IET_1``, ...), as each SB3 algorithm writes out its own name as ``tb_log_name``'s default. An off-policy
+    algorithm whose ``learning_starts`` lies at or beyond the end of the call warns, with the numbers: such a call
+    trains nothing (``sb3-sera train -n 600`` with a MuJoCo entry's ``learning_starts: 10000``).
     """
 
     def learn(
@@ -24,6 +30,15 @@ class NamedRuns(BaseAlgorithm):
         progress_bar: bool = False,
     ) -> SelfNamedRuns:
         """SB3's ``learn``; ``tb_log_name`` defaults to the algorithm's class name."""
+        learning_starts = getattr(self, "learning_starts", None)
+        end = total_timesteps + (0 if reset_num_timesteps else self.num_timesteps)
+        if learning_starts is not None and learning_starts >= end:
+            warnings.warn(
+                f"{type(self).__name__}.learn: learning_starts={learning_starts} is at or beyond the end of this call "
+                f"({end} steps): it collects transitions but makes no gradient step, so the policy stays untrained; "
+                "lower learning_starts or train for more steps",
+                stacklevel=2,
+            )
         return super().learn(  # type: ignore[safe-super]  # the SB3 algorithm after this class in the bases
             total_timesteps=total_timesteps,
             callback=callback,

@@ -4,10 +4,15 @@ Decentralized execution: per-agent controllers taken from a trained CTDE model (
 Each controller reads only its own agent's observation (as the PettingZoo env gives it) and returns that agent's
 action within its own bounds; the critics are not part of them, nor of what :meth:`DecentralizedActors.save`
 writes. An IET controller also reads its agent's latent, drawn at each :meth:`DecentralizedActors.reset`.
+
+What :meth:`DecentralizedActors.save` writes holds no pickled object: each actor's weights as a tensors-only file
+(read back with ``torch.load(weights_only=True)``) and its constructor arguments in ``agents.json``, so that loading
+controllers from someone else runs none of their code.
 """
 
 import copy
 import json
+import pickle
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, cast
@@ -17,9 +22,13 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.torch_layers import FlattenExtractor
 from stable_baselines3.sac.policies import Actor as SACActor
 from stable_baselines3.td3.policies import Actor as TD3Actor
+from torch import nn
+from torch.nn.modules import activation
 
+from sb3_sera.ctde.env import STATE_KEY
 from sb3_sera.ctde.policies import CTDEActor, GaussianAgentActor, MAPPOPolicy
 from sb3_sera.iet.policies import IETAgentActor
 
@@ -30,6 +39,72 @@ _ACTOR_CLASSES: dict[str, type[BasePolicy]] = {
     "td3": TD3Actor,
     "ppo": GaussianAgentActor,
 }
+#: The version of what :meth:`DecentralizedActors.save` writes (2: tensors-only weights, arguments in JSON)
+FORMAT_VERSION = 2
+#: The dtypes a saved Box may have
+_BOX_DTYPES = ("float32", "float64")
+
+
+def _encode_argument(name: str, value: Any) -> Any:
+    """
+    An actor's constructor argument as JSON: a Box by its bounds and dtype, an activation by its name in
+    ``torch.nn``, the flattening features extractor by name; plain numbers, strings and lists as they are.
+    """
+    if isinstance(value, spaces.Box):
+        return {"box": {"low": value.low.tolist(), "high": value.high.tolist(), "dtype": str(value.dtype)}}
+    if isinstance(value, type) and value.__name__ in activation.__all__ and getattr(nn, value.__name__) is value:
+        return {"module": value.__name__}
+    if isinstance(value, FlattenExtractor):
+        return {"features_extractor": "flatten"}
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    if isinstance(value, (list, tuple)) and all(isinstance(item, (bool, int, float, str)) for item in value):
+        return list(value)
+    raise TypeError(
+        f"DecentralizedActors.save cannot write the actor argument {name}={value!r}: only Box spaces, torch.nn "
+        "activations, the flattening features extractor, numbers, strings and lists of them are saved"
+    )
+
+
+def _decode_arguments(arguments: Mapping[str, Any]) -> dict[str, Any]:
+    """The constructor arguments :func:`_encode_argument` wrote, each checked; a features extractor is rebuilt."""
+    decoded: dict[str, Any] = {}
+    for name, value in arguments.items():
+        if not isinstance(value, dict):
+            decoded[name] = value
+        elif set(value) == {"box"} and isinstance(value["box"], dict) and value["box"].get("dtype") in _BOX_DTYPES:
+            box = value["box"]
+            dtype = np.dtype(box["dtype"])
+            decoded[name] = spaces.Box(np.array(box["low"], dtype=dtype), np.array(box["high"], dtype=dtype), dtype=dtype)
+        elif set(value) == {"module"} and value["module"] in activation.__all__:
+            decoded[name] = getattr(nn, value["module"])
+        elif value == {"features_extractor": "flatten"}:
+            decoded[name] = value
+        else:
+            raise ValueError(
+                f"{name}={value!r} is invalid: expected a Box ({{'box': ...}} with a dtype in {_BOX_DTYPES}), a torch.nn "
+                "activation ({'module': name}) or {'features_extractor': 'flatten'}"
+            )
+    for name, value in decoded.items():
+        if value == {"features_extractor": "flatten"}:
+            decoded[name] = FlattenExtractor(decoded["observation_space"])
+    return decoded
+
+
+def _load_weights(file: Path) -> dict[str, th.Tensor]:
+    """The tensors of a weights file, read without unpickling any object (``weights_only=True``)."""
+    try:
+        state = th.load(file, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as error:
+        raise ValueError(
+            f"{file} is not a weights-only file: torch.load(weights_only=True) refused it, so no object in it was "
+            "unpickled. DecentralizedActors.save writes tensors only; controllers saved before sb3_sera wrote "
+            "them so (or a tampered file) cannot be read: export them again with "
+            f"DecentralizedActors.from_model(model).save(...). ({error})"
+        ) from error
+    if not isinstance(state, dict) or not all(isinstance(tensor, th.Tensor) for tensor in state.values()):
+        raise ValueError(f"{file} is not a weights file of DecentralizedActors.save: expected a dict of tensors")
+    return state
 
 
 def _agent_action_dims(policy: BasePolicy) -> dict[str, int]:
@@ -113,35 +188,75 @@ class DecentralizedActors:
         return np.clip(action, space.low, space.high).astype(space.dtype)
 
     def __call__(self, observations: Mapping[str, np.ndarray], deterministic: bool = True) -> dict[str, np.ndarray]:
-        """Actions of the agents present in ``observations`` (a PettingZoo observation dict)."""
-        return {agent: self.act(agent, obs, deterministic) for agent, obs in observations.items()}
+        """
+        Actions of the agents present in ``observations``: a PettingZoo observation dict (each agent's observation by
+        its name, as the parallel env's ``reset`` and ``step`` return them), or a CTDEEnv observation, whose
+        ``"state"`` entry no controller reads (each agent's entry is what its actor read in training).
+
+        :raise ValueError: for observations that are no dict, or hold a key that is no agent of the controllers
+        """
+        expected = (
+            "expected a dict of per-agent observations keyed by agent name "
+            f"({', '.join(map(repr, self.actors))}), as a PettingZoo parallel env's reset() and step() return them "
+            f"(a CTDEEnv observation too: its {STATE_KEY!r} entry is not read)"
+        )
+        if not isinstance(observations, Mapping):
+            raise ValueError(f"DecentralizedActors {expected}, got {type(observations).__name__}")
+        unknown = [key for key in observations if key not in self.actors and key != STATE_KEY]
+        if unknown:
+            raise ValueError(f"DecentralizedActors got observations of {unknown}, which have no controller: {expected}")
+        return {agent: self.act(agent, obs, deterministic) for agent, obs in observations.items() if agent in self.actors}
 
     def save(self, path: str | Path) -> None:
-        """Write the actors (no critic) to the folder ``path``: one file per agent and ``agents.json``."""
+        """
+        Write the actors (no critic) to the folder ``path``: each actor's weights as a tensors-only file
+        (``actor_<i>.pth``) and ``agents.json`` with each agent's file, actor kind, constructor arguments and action
+        bounds. Nothing is pickled.
+        """
         folder = Path(path)
         folder.mkdir(parents=True, exist_ok=True)
         layout: dict[str, Any] = {}
         for index, (agent, actor) in enumerate(self.actors.items()):
             kind = next(name for name, actor_class in _ACTOR_CLASSES.items() if isinstance(actor, actor_class))
-            actor.save(str(folder / f"actor_{index}.pth"))
+            th.save(actor.state_dict(), folder / f"actor_{index}.pth")
             space = self.action_spaces[agent]
             layout[agent] = {
                 "file": f"actor_{index}.pth",
                 "kind": kind,
+                "arguments": {
+                    name: _encode_argument(name, value) for name, value in actor._get_constructor_parameters().items()
+                },
                 "low": space.low.tolist(),
                 "high": space.high.tolist(),
             }
-        (folder / "agents.json").write_text(json.dumps(layout, indent=1))
+        (folder / "agents.json").write_text(json.dumps({"format": FORMAT_VERSION, "agents": layout}, indent=1))
 
     @classmethod
     def load(cls, path: str | Path) -> "DecentralizedActors":
-        """Read controllers written by :meth:`save`."""
+        """
+        Read controllers written by :meth:`save`, without unpickling anything: the weights are read with
+        ``torch.load(weights_only=True)`` and the actors built from the arguments in ``agents.json``, each checked.
+        """
         folder = Path(path)
-        layout = json.loads((folder / "agents.json").read_text())
-        actors = {
-            agent: _ACTOR_CLASSES[entry["kind"]].load(str(folder / entry["file"]), device="cpu")
-            for agent, entry in layout.items()
-        }
+        saved = json.loads((folder / "agents.json").read_text())
+        version = saved.get("format") if isinstance(saved, dict) else None
+        if version != FORMAT_VERSION:
+            raise ValueError(
+                f"{folder / 'agents.json'} has format={version!r}, expected {FORMAT_VERSION}: controllers saved by an "
+                "earlier sb3_sera hold pickled objects and are not read; export them again with "
+                "DecentralizedActors.from_model(model).save(...)"
+            )
+        layout: dict[str, Any] = saved["agents"]
+        actors: dict[str, BasePolicy] = {}
+        for agent, entry in layout.items():
+            if entry["kind"] not in _ACTOR_CLASSES:
+                raise ValueError(f"kind={entry['kind']!r} is invalid: expected one of {', '.join(map(repr, _ACTOR_CLASSES))}")
+            file = entry["file"]
+            if not isinstance(file, str) or Path(file).name != file or file in ("", ".", ".."):
+                raise ValueError(f"file={file!r} is invalid: expected a file name in {folder}")
+            actor = _ACTOR_CLASSES[entry["kind"]](**_decode_arguments(entry["arguments"]))
+            actor.load_state_dict(_load_weights(folder / file))
+            actors[agent] = actor
         action_spaces = {
             agent: spaces.Box(np.array(entry["low"], dtype=np.float32), np.array(entry["high"], dtype=np.float32))
             for agent, entry in layout.items()

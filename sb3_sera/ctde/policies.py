@@ -20,6 +20,7 @@ from stable_baselines3.td3.policies import Actor as TD3Actor
 from stable_baselines3.td3.policies import TD3Policy
 from torch import nn
 
+from sb3_sera.common.arguments import check_gymnasium_env
 from sb3_sera.ctde.env import STATE_KEY, CTDEEnv
 from sb3_sera.sera.policies import SERAPolicy
 
@@ -72,8 +73,9 @@ def make_env_for_policy(
     algorithm_class: type[BaseAlgorithm], policy: str | type[BasePolicy], env: GymEnv | str | None, verbose: int = 0
 ) -> GymEnv | None:
     """
-    ``env`` made as SB3 makes it (an id becomes ``gym.make(id, render_mode="rgb_array")``), after checking that a
-    CTDE env gets a CTDE policy.
+    ``env`` made as SB3 makes it (an id becomes ``gym.make(id, render_mode="rgb_array")``), after checking that it
+    is no PettingZoo env (``TypeError`` saying to wrap it in :class:`~sb3_sera.ctde.env.CTDEEnv`) and that a CTDE env
+    gets a CTDE policy.
 
     On a :class:`~sb3_sera.ctde.env.CTDEEnv`, SB3 would answer ``"MlpPolicy"`` with advice to use
     ``"MultiInputPolicy"``, which builds one actor reading every agent's observation and the state: a model that
@@ -87,6 +89,7 @@ def make_env_for_policy(
     """
     if env is None:
         return None
+    check_gymnasium_env(algorithm_class.__name__, env, multi_agent=True)
     env = maybe_make_env(env, verbose)
     policy_class = algorithm_class.policy_aliases.get(policy) if isinstance(policy, str) else policy
     if policy_class is None or is_ctde_policy(policy_class) or not _gives_ctde_observations(env):

@@ -14,7 +14,7 @@ The grid file::
     eval_episodes: 5         # optional
     hyperparams: {learning_starts: 5000}   # optional overrides for every variant (a variant's own values win)
 
-Each run starts from the task's entry in ``sb3_sera/hyperparams/<algo>.yml`` (as ``sb3-sera train``), then the grid's
+Each run starts from the task's entry in ``hyperparams/<algo>.yml`` (as ``sb3-sera train``), then the grid's
 ``hyperparams``, then the variant's own values. Everything is checked before the first run starts (each variant's
 model is built once on each task). Each run writes its rl-zoo3-style folder ``<out>/<variant>/<env_name>_<id>/``
 with its records; a finished run is never run again, so an interrupted grid resumes.

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import yaml
 
+from sb3_sera.common.mujoco_log import route_mujoco_warnings
 from sb3_sera.experiments import bench, compare, ledger, report, stats, zoo
 from sb3_sera.experiments.runs import Interrupted, RunResult, default_threads, env_name
 
@@ -15,7 +16,7 @@ from sb3_sera.experiments.runs import Interrupted, RunResult, default_threads, e
 def _print_report(results: list[RunResult], out: str, name: str, reps: int) -> None:
     """Report the runs just made in a new ``<out>/reports/<name>_<n>/`` and print its tables."""
     folder = report.next_report_folder(Path(out) / "reports", name)
-    path = report.write_report(results, folder, reps=reps, sources=[out])
+    path = report.write_report(results, folder, reps=reps, sources=[out], log=lambda line: print(line, file=sys.stderr))
     print(f"\n{path.read_text()}\nReport: {path}\nRun folders: {out}/<variant>/<env_name>_<id>/")
 
 
@@ -48,7 +49,14 @@ def _bench(args: argparse.Namespace) -> None:
 
 
 def _report(args: argparse.Namespace) -> None:
-    path = report.report_roots(args.roots, args.out, overwrite=args.overwrite, reps=args.reps, matrix_step=args.matrix_step)
+    path = report.report_roots(
+        args.roots,
+        args.out,
+        overwrite=args.overwrite,
+        reps=args.reps,
+        matrix_step=args.matrix_step,
+        log=lambda line: print(line, file=sys.stderr),
+    )
     print(path.read_text())
     print(f"\nReport: {path}")
 
@@ -86,7 +94,7 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True)
     comp = commands.add_parser(
         "compare",
-        help="train algorithms on one task for several seeds with sb3_sera/hyperparams/<algo>.yml, then report them",
+        help="train algorithms on one task for several seeds with hyperparams/<algo>.yml, then report them",
         description=compare.__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -105,7 +113,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--hyperparams",
         nargs="+",
         default=None,
-        help="overrides of sb3_sera/hyperparams/<algo>.yml: key:value for every algorithm (learning_starts:1000), "
+        help="overrides of hyperparams/<algo>.yml: key:value for every algorithm (learning_starts:1000), "
         "algo:key:value for one (serasac:sera_alpha:0.3); all checked before the first run",
     )
     _add_run_flags(comp)
@@ -164,9 +172,13 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> None:
     """Entry point of ``sb3-sera``."""
     argv = list(sys.argv[1:] if argv is None else argv)
+    route_mujoco_warnings()
     if argv and argv[0] in zoo.ZOO_COMMANDS:
         # rl-zoo3 parses these arguments itself: every zoo flag keeps working
-        zoo.run_zoo(argv[0], argv[1:])
+        try:
+            zoo.run_zoo(argv[0], argv[1:])
+        except ValueError as error:
+            sys.exit(f"sb3-sera {argv[0]}: error: {' '.join(str(error).split())}")
         return
     parser = build_parser()
     args = parser.parse_args(argv)

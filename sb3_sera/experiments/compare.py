@@ -1,6 +1,6 @@
 """
 Train several algorithms on one task for several seeds, each with the task's hyperparameters from
-``sb3_sera/hyperparams/<algo>.yml`` (as ``sb3-sera train``) and the caller's overrides; the runs are recorded by the run
+``hyperparams/<algo>.yml`` (as ``sb3-sera train``) and the caller's overrides; the runs are recorded by the run
 engine (:mod:`sb3_sera.experiments.runs`) and summarized by the report (:mod:`sb3_sera.experiments.report`).
 """
 

@@ -17,7 +17,7 @@ aggregated over tasks and performance profiles.
 
 import json
 from collections import defaultdict
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -412,7 +412,11 @@ def _draw_band(
     grid, matrix, note = aligned(series)
     point, low, high = stats.iqm_interval(matrix[:, None, :], reps)
     ax.plot(grid, point, color=color, linestyle=linestyle, label=f"{label} (n={len(series)})")
-    ax.fill_between(grid, low, high, color=color, alpha=0.2)
+    if linestyle == "-":
+        ax.fill_between(grid, low, high, color=color, alpha=0.2)
+    else:
+        # A second settings group of the same variant: its band hatched, so that the two bands stay apart
+        ax.fill_between(grid, low, high, facecolor="none", edgecolor=color, hatch="///", linewidth=0.0, alpha=0.6)
     return note
 
 
@@ -743,6 +747,7 @@ def write_report(
     reps: int = stats.REPS,
     matrix_step: int | None = None,
     sources: Sequence[str] = (),
+    log: Callable[[str], None] | None = None,
 ) -> Path:
     """
     Write ``report.md`` and its figures into the folder ``out`` (see the module's docstring).
@@ -752,6 +757,7 @@ def write_report(
     :param reps: bootstrap resamples of every interval
     :param matrix_step: the step whose correlation matrices are drawn (None: each run's last evaluation)
     :param sources: where the runs were read from, for the report's first line
+    :param log: called with a line saying what the report is doing, section by section (None: silent)
     :return: the path of ``report.md``
     """
     if not runs:
@@ -766,8 +772,10 @@ def write_report(
     lines = ["# Results", ""]
     if sources:
         lines += [f"Runs read from: {', '.join(sources)}.", ""]
-    for (env_id, budget), groups in sections_by_key.items():
+    for number, ((env_id, budget), groups) in enumerate(sections_by_key.items(), start=1):
         stem = f"{env_name(env_id)}_{budget}"
+        if log is not None:
+            log(f"report: section {number}/{len(sections_by_key)}, {env_id} at {budget:,} steps: table, claims, figures")
         lines += [f"## {env_id}, {budget:,} steps", "", *section_table(groups, reps), ""]
         claims = claims_section([(group.variant, group.runs) for group in groups], reps)
         if claims:
@@ -811,6 +819,7 @@ def report_roots(
     overwrite: bool = False,
     reps: int = stats.REPS,
     matrix_step: int | None = None,
+    log: Callable[[str], None] | None = None,
 ) -> Path:
     """
     :func:`write_report` for every run under ``roots`` (see :func:`load_runs`); refuses to overwrite an earlier
@@ -822,14 +831,18 @@ def report_roots(
         # The earlier report's figures go with it: a figure it drew that this one does not would otherwise stay
         for stale in Path(out).glob("*.png"):
             stale.unlink()
+    if log is not None:
+        log(f"report: reading the runs under {', '.join(str(root) for root in roots)}")
     runs, skipped = load_runs(roots)
+    if log is not None:
+        log(f"report: {len(runs)} finished runs, {len(skipped)} folders left out")
     if not runs:
         reasons = "".join(f"; {s.folder}: {s.reason}" for s in skipped)
         raise ValueError(
             f"no finished runs (<root>/<variant>/<env_name>_<id>/ with its <env_name>/args.yml record and evaluations.npz) "
             f"under {[str(root) for root in roots]}{reasons}"
         )
-    return write_report(runs, out, skipped, reps, matrix_step, sources=[str(root) for root in roots])
+    return write_report(runs, out, skipped, reps, matrix_step, sources=[str(root) for root in roots], log=log)
 
 
 def next_report_folder(parent: str | Path, name: str) -> Path:

@@ -2,7 +2,7 @@
 The run engine behind ``compare``, ``bench`` and the notebooks: one way to describe a training run, to resolve its
 hyperparameters and to record it, in rl-zoo3's layout so that the zoo's own runs read the same way.
 
-Hyperparameters come from where ``sb3-sera train`` takes them: the task's entry in ``sb3_sera/hyperparams/<algo>.yml`` (this
+Hyperparameters come from where ``sb3-sera train`` takes them: the task's entry in ``hyperparams/<algo>.yml`` (this
 package's file, else rl-zoo3's own), then the variant's or the command line's overrides. A run lives in
 ``<out>/<variant>/<env_name>_<id>/`` (ids from 1, as the zoo numbers them) and holds, as the zoo writes them,
 ``<env_name>/config.yml`` (the resolved hyperparameters) and ``<env_name>/args.yml`` (algorithm, variant, env id,
@@ -27,7 +27,7 @@ import threading
 import time
 import zipfile
 from collections.abc import Iterator, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from importlib import metadata
@@ -41,12 +41,14 @@ import torch as th
 import yaml
 from gymnasium import spaces
 from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.noise import NormalActionNoise, OrnsteinUhlenbeckActionNoise
 from stable_baselines3.common.vec_env import VecEnv
 from tqdm import tqdm
 
 from sb3_sera.common.callbacks import BIAS_FILE, InitialStateBiasCallback, initial_state_bias
+from sb3_sera.common.mujoco_log import route_mujoco_warnings
 from sb3_sera.ctde.env import STATE_KEY
 from sb3_sera.experiments.policy_kwargs import parse_policy_kwargs
 
@@ -99,8 +101,11 @@ def default_hyperparams(algo: str, env_id: str) -> tuple[dict[str, Any], str]:
     """
     path = hyperparams_file(algo)
     entries = yaml.safe_load(path.read_text()) if path.exists() else {}
-    # Named from its package (sb3_sera/hyperparams/serasac.yml), never by the absolute path of this machine
-    where = f"{path.parent.parent.name}/{path.parent.name}/{path.name}"
+    # Named as the repository holds it (hyperparams/serasac.yml; rl-zoo3's: rl_zoo3/hyperparams/sac.yml), never by
+    # the absolute path of this machine
+    from sb3_sera.experiments.zoo import HYPERPARAMS_DIR
+
+    where = f"hyperparams/{path.name}" if path.parent == HYPERPARAMS_DIR else f"rl_zoo3/hyperparams/{path.name}"
     for key in (env_id, "default"):
         if key in (entries or {}):
             return dict(entries[key]), f"{where}:{key}"
@@ -239,7 +244,7 @@ def make_spec(
     device: str = "auto",
 ) -> RunSpec:
     """
-    A run with the task's hyperparameters from ``sb3_sera/hyperparams/<algo>.yml`` (see :func:`default_hyperparams`), then
+    A run with the task's hyperparameters from ``hyperparams/<algo>.yml`` (see :func:`default_hyperparams`), then
     ``overrides``; ``ValueError`` for a key ``algo`` does not take.
     """
     defaults, source = default_hyperparams(algo, env_id)
@@ -278,8 +283,10 @@ def package_versions() -> dict[str, str]:
 
 def source_revision() -> dict[str, Any]:
     """
-    The git commit of the code that runs (``git_commit``) and whether its tree was clean (``git_clean``): read from
-    the repository this package is imported from; both None for an installed package outside a git checkout.
+    The git commit of the code that runs (``git_commit``) and whether its tree was clean (``git_clean``): no tracked
+    file changed, and no untracked file in the package (a log or a grid file beside the checkout does not count,
+    an untracked module would): read from the repository this package is imported from; both None for an installed
+    package outside a git checkout.
     """
     root = Path(__file__).resolve().parents[2]
 
@@ -288,13 +295,15 @@ def source_revision() -> dict[str, Any]:
             done = subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True, timeout=30, check=False)
         except (OSError, subprocess.SubprocessError):
             return None
-        return done.stdout.strip() if done.returncode == 0 else None
+        return done.stdout if done.returncode == 0 else None
 
     commit = git("rev-parse", "HEAD") if (root / ".git").exists() else None
     if commit is None:
         return {"git_commit": None, "git_clean": None}
-    status = git("status", "--porcelain")
-    return {"git_commit": commit, "git_clean": status == ""}
+    status = git("status", "--porcelain", "--untracked-files=all") or ""
+    package = Path(__file__).resolve().parents[1].name
+    changes = [line for line in status.splitlines() if not line.startswith("??") or line[3:].startswith(f"{package}/")]
+    return {"git_commit": commit.strip(), "git_clean": not changes}
 
 
 class _RecordLoader(yaml.SafeLoader):
@@ -456,6 +465,33 @@ def policy_for(env: VecEnv) -> str:
     return "CTDEPolicy" if isinstance(space, spaces.Dict) and STATE_KEY in space.spaces else "MlpPolicy"
 
 
+#: Where a running run keeps its step count for the command's progress bar (removed when it ends)
+PROGRESS_FILE = ".progress"
+
+
+class ProgressFile(BaseCallback):
+    """Writes the model's step count to a file every ``every`` calls, for the progress bar of the command."""
+
+    def __init__(self, path: Path, every: int = 500) -> None:
+        super().__init__()
+        self.path, self.every = path, every
+
+    def _on_step(self) -> bool:
+        if self.n_calls % self.every == 0:
+            self.path.write_text(str(self.num_timesteps))
+        return True
+
+
+def steps_done(folder: Path, budget: int) -> int:
+    """Steps a run has made: its budget when finished, else what its progress file says (0 before it starts)."""
+    if (folder / RESULT_FILE).exists():
+        return budget
+    try:
+        return min(int((folder / PROGRESS_FILE).read_text() or 0), budget)
+    except (OSError, ValueError):
+        return 0
+
+
 def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
     """
     Train one run in its folder (made by :func:`assign_folders`), evaluating every ``spec.eval_freq`` steps; a
@@ -464,6 +500,7 @@ def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
     folder = Path(folder)
     if (folder / RESULT_FILE).exists():
         return load_result(folder)
+    route_mujoco_warnings()
     # An interrupted run starts again here, maybe under newer code: its record names the code that runs now
     (records_dir(folder, spec.env_id) / "args.yml").write_text(yaml.safe_dump(_plain(spec.args()), sort_keys=True))
     if spec.num_threads is not None:
@@ -481,8 +518,10 @@ def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
         verbose=0,
     )
     start = time.perf_counter()
-    model.learn(spec.n_timesteps, callback=callback, tb_log_name=f"{spec.variant}_seed{spec.seed}")
+    progress = ProgressFile(folder / PROGRESS_FILE)
+    model.learn(spec.n_timesteps, callback=[callback, progress], tb_log_name=f"{spec.variant}_seed{spec.seed}")
     wall_time = time.perf_counter() - start
+    (folder / PROGRESS_FILE).unlink(missing_ok=True)
     model.save(folder / env_name(spec.env_id))
     env.close()
     eval_env.close()
@@ -563,7 +602,13 @@ def load_result(folder: Path) -> RunResult:
 
 
 def default_threads(n_jobs: int) -> int:
-    """torch threads per run when ``n_jobs`` runs share the machine: the cores divided among them, at least one."""
+    """
+    torch threads per run when ``n_jobs`` runs share the machine: ``OMP_NUM_THREADS`` when it is set (the user's
+    word), else the cores divided among the runs, at least one.
+    """
+    from_env = os.environ.get("OMP_NUM_THREADS", "")
+    if from_env.isdigit() and int(from_env) > 0:
+        return int(from_env)
     return max((os.cpu_count() or 1) // max(n_jobs, 1), 1)
 
 
@@ -673,16 +718,23 @@ def _execute_locally(
     # SIGTERM (a scheduler, kill) stops the runs as Ctrl-C does (signals are the main thread's to handle)
     main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler) if main_thread else None
+    total = sum(spec.n_timesteps for spec in specs)
     try:
-        with tqdm(total=len(specs), desc="runs", disable=not progress_bar) as bar:
+        with tqdm(total=total, desc=f"{len(specs)} runs", unit="step", disable=not progress_bar) as bar:
             futures = {
                 pool.submit(train_one, spec, folder): index
                 for index, (spec, folder) in enumerate(zip(specs, folders, strict=True))
             }
-            for future in as_completed(futures):
-                error = future.exception()
-                outcomes[futures[future]] = error if error is not None else future.result()
-                bar.update()
+            pending = set(futures)
+            while pending:
+                done, pending = wait(pending, timeout=2.0, return_when=FIRST_COMPLETED)
+                for future in done:
+                    error = future.exception()
+                    outcomes[futures[future]] = error if error is not None else future.result()
+                # Steps inside the runs: each worker writes its count every few hundred steps
+                steps = sum(steps_done(folder, spec.n_timesteps) for spec, folder in zip(specs, folders, strict=True))
+                bar.set_postfix_str(f"{len(outcomes)}/{len(specs)} runs ended")
+                bar.update(max(steps - bar.n, 0))
     except KeyboardInterrupt:
         for process in list(getattr(pool, "_processes", {}).values()):
             process.kill()

@@ -2,7 +2,7 @@
 rl-zoo3 bridge. rl-zoo3 has no plugin mechanism, so this module adds the package's algorithms to the zoo's
 algorithm table (``rl_zoo3.utils.ALGOS``) and to its hyperparameter sampler and converter tables (for
 ``-optimize``), then runs the zoo's own ``train``, ``enjoy`` and ``record_video`` with the package's
-``sb3_sera/hyperparams/<algo>.yml`` as the default ``--conf-file``.
+``hyperparams/<algo>.yml`` as the default ``--conf-file``.
 """
 
 import runpy
@@ -11,6 +11,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+import gymnasium as gym
 from stable_baselines3.common.base_class import BaseAlgorithm
 
 from sb3_sera.ace import ACE
@@ -33,8 +34,19 @@ ZOO_ALGOS: dict[str, type[BaseAlgorithm]] = {
 }
 #: The multi-agent algorithms tune in the search space of the SB3 algorithm they are built on
 ZOO_BASE_ALGOS = {"masac": "sac", "matd3": "td3", "maddpg": "ddpg", "mappo": "ppo"}
+
+
+def hyperparams_dir() -> Path:
+    """
+    The package's hyperparameter files: ``sb3_sera/hyperparams/`` in an installed wheel (where the build maps them),
+    else the repository's top-level ``hyperparams/`` (a checkout or an editable install), their one source.
+    """
+    installed = Path(__file__).resolve().parents[1] / "hyperparams"
+    return installed if installed.is_dir() else Path(__file__).resolve().parents[2] / "hyperparams"
+
+
 #: One YAML file per algorithm, keyed by env id (rl-zoo3's format), shipped with the package
-HYPERPARAMS_DIR = Path(__file__).resolve().parents[1] / "hyperparams"
+HYPERPARAMS_DIR = hyperparams_dir()
 #: The zoo commands the CLI passes through
 ZOO_COMMANDS = ("train", "enjoy", "record-video", "optimize")
 #: The zoo commands that load a model only to run it
@@ -172,19 +184,34 @@ def _flag_value(argv: Sequence[str], *names: str) -> str | None:
 def zoo_argv(command: str, argv: Sequence[str]) -> list[str]:
     """
     The zoo's arguments for ``command``: ``optimize`` is ``train -optimize``, and ``train``/``optimize`` read the
-    package's ``sb3_sera/hyperparams/<algo>.yml`` unless ``--conf-file`` is given.
+    package's ``hyperparams/<algo>.yml`` unless ``--conf-file`` is given.
     """
     args = list(argv)
     if command not in ZOO_COMMANDS:
         raise ValueError(f"Unknown zoo command {command!r}: expected one of {ZOO_COMMANDS}")
     if command == "optimize" and "-optimize" not in args and "--optimize-hyperparameters" not in args:
         args.append("-optimize")
-    if command in ("train", "optimize") and _flag_value(args, "-conf", "--conf-file") is None:
+    if command in ("train", "optimize"):
         algo = _flag_value(args, "--algo") or "ppo"
-        config = HYPERPARAMS_DIR / f"{algo}.yml"
-        if config.exists():
-            args += ["--conf-file", str(config)]
+        check_algo_task(algo, _flag_value(args, "--env"))
+        if _flag_value(args, "-conf", "--conf-file") is None and (HYPERPARAMS_DIR / f"{algo}.yml").exists():
+            args += ["--conf-file", str(HYPERPARAMS_DIR / f"{algo}.yml")]
     return args
+
+
+def check_algo_task(algo: str, env_id: str | None) -> None:
+    """
+    ``ValueError`` for an algorithm on a task of the other kind (IET on a single-agent task, SUNRISE or ACE on a
+    multi-agent one), naming the tasks it takes, before rl-zoo3 would only say that no hyperparameters were found.
+    """
+    if env_id is None:
+        return
+    multi_agent = env_id.startswith("sb3_sera/")
+    tasks = sorted(name for name in gym.registry if name.startswith("sb3_sera/"))
+    if algo in MULTI_AGENT_ALGOS and not multi_agent:
+        raise ValueError(f"{algo} is multi-agent only: train it on a CTDE task ({', '.join(tasks)}), not {env_id}")
+    if algo in SINGLE_AGENT_ALGOS and multi_agent:
+        raise ValueError(f"{algo} is single-agent only: train it on a Gymnasium task (HalfCheetah-v5, ...), not {env_id}")
 
 
 def run_zoo(command: str, argv: Sequence[str]) -> None:

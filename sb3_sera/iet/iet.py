@@ -8,13 +8,16 @@ Evaluation draws the latents the same way (one per agent per episode).
 """
 
 import inspect
+import io
+import pathlib
+from collections.abc import Iterable
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 import torch as th
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv
-from stable_baselines3.common.vec_env import VecEnv, unwrap_vec_normalize
+from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper, unwrap_vec_normalize
 
 from sb3_sera.common.checks import check_int
 from sb3_sera.common.naming import NamedRuns
@@ -74,6 +77,8 @@ class IET(NamedRuns, MASAC):
                 "on a single-agent task use SERASAC, SAC or SUNRISE"
             )
         self.latent_dim = check_int("latent_dim", latent_dim, 1)
+        #: The latents' generator state when the model was saved (see :meth:`save` and :meth:`load`)
+        self._latent_rng_state: dict[str, Any] | None = None
         super().__init__(policy, env, *args, **kwargs)
 
     def with_latents(self, env: VecEnv, seed: int | None = None) -> VecEnv:
@@ -107,6 +112,24 @@ class IET(NamedRuns, MASAC):
         """SB3's ``set_env``; the env (a CTDE env, or one already holding the latents) gets its latents."""
         super().set_env(self.with_latents(self._wrap_env(env, self.verbose)), force_reset)
 
+    def latent_env(self) -> LatentVecEnv | None:
+        """The :class:`LatentVecEnv` that draws the latents of the model's env (None without an env)."""
+        env = self.env
+        while isinstance(env, VecEnvWrapper) and not isinstance(env, LatentVecEnv):
+            env = env.venv
+        return env if isinstance(env, LatentVecEnv) else None
+
+    def save(
+        self,
+        path: str | pathlib.Path | io.BufferedIOBase,
+        exclude: Iterable[str] | None = None,
+        include: Iterable[str] | None = None,
+    ) -> None:
+        """SB3's ``save``, with the state of the latents' generator, which :meth:`load` restores."""
+        latents = self.latent_env()
+        self._latent_rng_state = None if latents is None else dict(latents.rng.bit_generator.state)
+        super().save(path, exclude, include)
+
     @classmethod
     def load(
         cls: type[SelfIET],
@@ -118,7 +141,12 @@ class IET(NamedRuns, MASAC):
         force_reset: bool = True,
         **kwargs: Any,
     ) -> SelfIET:
-        """SB3's ``load``; the saved model's spaces include the latents, so ``env`` gets them (:meth:`set_env`) first."""
+        """
+        SB3's ``load``; the saved model's spaces include the latents, so ``env`` gets them (:meth:`set_env`) first.
+        Then ``env`` is seeded with the model's seed, as SB3's ``load`` seeds the env it is given, and its latents
+        continue the generator of the saved model's (unless ``seed`` is given here: the latents then follow it), so
+        that a loaded model continues the same way each time it is loaded.
+        """
         model = super().load(
             path, None, device, custom_objects, print_system_info=print_system_info, force_reset=force_reset, **kwargs
         )
@@ -126,6 +154,12 @@ class IET(NamedRuns, MASAC):
             vec_env = model._wrap_env(env, model.verbose)
             model.n_envs = vec_env.num_envs  # SB3's load takes the env's number of envs; set_env insists on the model's
             model.set_env(vec_env, force_reset=force_reset)
+            assert model.env is not None
+            if model.seed is not None:
+                model.env.seed(model.seed)
+            latents = model.latent_env()
+            if latents is not None and model._latent_rng_state is not None and "seed" not in kwargs:
+                latents.rng.bit_generator.state = model._latent_rng_state
         return model
 
     def dump_logs(self) -> None:

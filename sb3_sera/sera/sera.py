@@ -6,13 +6,24 @@ from typing import Any, ClassVar, NamedTuple
 
 import torch as th
 from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.type_aliases import GymEnv, PyTorchObs, Schedule
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, PyTorchObs, Schedule
 from stable_baselines3.common.utils import FloatSchedule, polyak_update
 from stable_baselines3.sac import SAC
 
-from sb3_sera.common.checks import check_choice, check_ent_coef, check_int, check_off_policy_hyperparameters, check_range
+from sb3_sera.common.arguments import checks_keywords
+from sb3_sera.common.checks import (
+    check_choice,
+    check_ent_coef,
+    check_finite,
+    check_int,
+    check_off_policy_hyperparameters,
+    check_range,
+    gradient_step_context,
+    with_env_step_check,
+)
 from sb3_sera.common.naming import NamedRuns
 from sb3_sera.ctde.policies import SERACTDEPolicy, fill_agent_layout, make_env_for_policy
 from sb3_sera.sera.aggregation import (
@@ -141,6 +152,7 @@ class SERASAC(NamedRuns, SAC):
     critic_target: EnsembleCritic  # type: ignore[assignment]
     step_size: VarianceAdaptiveStepSize
 
+    @checks_keywords
     def __init__(
         self,
         policy: str | type[SERAPolicy],
@@ -318,16 +330,11 @@ class SERASAC(NamedRuns, SAC):
         Raise ``FloatingPointError`` naming the first non-finite quantity (cheap path: one check of ``sentinel``,
         a sum that is non-finite whenever one of the quantities is).
         """
-        if bool(th.isfinite(sentinel)):
-            return
-        for name, value in quantities.items():
-            if not bool(th.isfinite(value).all()):
-                raise FloatingPointError(
-                    f"Non-finite {name} at gradient step {self._n_updates + gradient_step + 1} "
-                    f"(num_timesteps={self.num_timesteps}): training stopped before the parameters it drives were "
-                    "changed, so the model can still be saved. Check the rewards and observations for inf/NaN, "
-                    "or lower the learning rates."
-                )
+        check_finite(quantities, gradient_step_context(self, gradient_step), sentinel)
+
+    def _init_callback(self, callback: MaybeCallback, progress_bar: bool = False) -> BaseCallback:
+        # Non-finite rewards and observations are refused at the env step that gives them
+        return super()._init_callback(with_env_step_check(callback), progress_bar)
 
     def _critic_update_eager(
         self,

@@ -7,13 +7,23 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.base_class import maybe_make_env
 from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.type_aliases import GymEnv, Schedule
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.utils import polyak_update
 
-from sb3_sera.common.checks import check_ent_coef, check_int, check_off_policy_hyperparameters, check_range
+from sb3_sera.common.arguments import check_gymnasium_env, checks_keywords
+from sb3_sera.common.checks import (
+    check_ent_coef,
+    check_finite,
+    check_int,
+    check_off_policy_hyperparameters,
+    check_range,
+    gradient_step_context,
+    with_env_step_check,
+)
 from sb3_sera.common.naming import NamedRuns
 from sb3_sera.sunrise.buffers import SUNRISEReplayBuffer, SUNRISEReplayBufferSamples
 from sb3_sera.sunrise.ensemble import backup_weight, ensemble_std, masked_mean, weighted_bellman_loss
@@ -90,6 +100,7 @@ class SUNRISE(NamedRuns, OffPolicyAlgorithm):
     critic_target: EnsembleCritic
     replay_buffer: SUNRISEReplayBuffer
 
+    @checks_keywords
     def __init__(
         self,
         policy: str | type[SUNRISEPolicy],
@@ -122,6 +133,7 @@ class SUNRISE(NamedRuns, OffPolicyAlgorithm):
         _init_setup_model: bool = True,
     ):
         # Made here as SB3 would make it, so that a Dict observation space gets SUNRISE's error, not SB3's advice
+        check_gymnasium_env(type(self).__name__, env, multi_agent=False)
         env = maybe_make_env(env, verbose)
         if policy in ("CTDEPolicy", "MultiInputPolicy"):
             raise ValueError(f"{SINGLE_AGENT_ONLY}: got policy={policy!r}")
@@ -172,6 +184,9 @@ class SUNRISE(NamedRuns, OffPolicyAlgorithm):
         self.target_update_interval = check_int("target_update_interval", target_update_interval, 1)
         self.ent_coef = check_ent_coef(ent_coef)
         self.target_entropy = target_entropy
+        #: The member acting in each env until its episode ends (``ucb_lambda = 0``): drawn when acting starts and at
+        #: each episode start, saved with the model (so that a loaded model continues an episode as it would have)
+        self._episode_members: np.ndarray | None = None
         self.log_ent_coef: th.Tensor | None = None
         self.ent_coef_optimizer: th.optim.Adam | None = None
         if _init_setup_model:
@@ -189,8 +204,6 @@ class SUNRISE(NamedRuns, OffPolicyAlgorithm):
         self.actor = self.policy.actor
         self.critic = self.policy.critic
         self.critic_target = self.policy.critic_target
-        #: The member acting in each env until its episode ends (``ucb_lambda = 0``); drawn when acting starts
-        self._episode_members: np.ndarray | None = None
         if self.target_entropy == "auto":
             self.target_entropy = float(-np.prod(self.action_space.shape).astype(np.float32))  # type: ignore[arg-type]
         else:
@@ -202,6 +215,19 @@ class SUNRISE(NamedRuns, OffPolicyAlgorithm):
             self.ent_coef_optimizer = th.optim.Adam([self.log_ent_coef], lr=self.lr_schedule(1))
         else:
             self.ent_coef_tensor = th.full((self.n_members,), float(self.ent_coef), device=self.device)
+
+    def _setup_learn(
+        self,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        reset_num_timesteps: bool = True,
+        tb_log_name: str = "run",
+        progress_bar: bool = False,
+    ) -> tuple[int, BaseCallback]:
+        if reset_num_timesteps or self._last_obs is None:
+            # SB3 resets the envs: their new episodes get new members, drawn when acting starts
+            self._episode_members = None
+        return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
 
     def _sample_action(
         self, learning_starts: int, action_noise: ActionNoise | None = None, n_envs: int = 1
@@ -334,19 +360,14 @@ class SUNRISE(NamedRuns, OffPolicyAlgorithm):
         :param quantities: tensors by name, in the order in which a cause precedes its consequences (one device
             synchronization when all are finite)
         """
-        if bool(th.isfinite(th.stack([value.sum() for value in quantities.values()])).all()):
-            return
-        for name, value in quantities.items():
-            if not bool(th.isfinite(value).all()):
-                raise FloatingPointError(
-                    f"Non-finite {name} at gradient step {self._n_updates + gradient_step + 1} "
-                    f"(num_timesteps={self.num_timesteps}): training stopped before the parameters it drives were "
-                    "changed, so the model can still be saved. Check the rewards and observations for inf/NaN, "
-                    "or lower the learning rate."
-                )
+        check_finite(quantities, gradient_step_context(self, gradient_step))
+
+    def _init_callback(self, callback: MaybeCallback, progress_bar: bool = False) -> BaseCallback:
+        # Non-finite rewards and observations are refused at the env step that gives them
+        return super()._init_callback(with_env_step_check(callback), progress_bar)
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "actor", "critic", "critic_target", "_episode_members"]
+        return [*super()._excluded_save_params(), "actor", "critic", "critic_target"]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts = ["policy", "actor.optimizer", "critic.optimizer"]
