@@ -1,12 +1,11 @@
 """sb3-sera: Soft Ensemble Reliability Aggregation (SERA) for Stable-Baselines3."""
 
-# Import order matters: SERASAC's module imports the CTDE policies, which build on SERASAC's policies
-from sb3_sera.sera import SERASAC  # noqa: I001
+from sb3_sera.ace import ACE
 from sb3_sera.ctde import CTDEEnv, register_tasks
 from sb3_sera.ctde.algorithms import MADDPG, MAPPO, MASAC, MATD3
-from sb3_sera.sunrise import SUNRISE
-from sb3_sera.ace import ACE
 from sb3_sera.iet import IET
+from sb3_sera.sera import SERASAC
+from sb3_sera.sunrise import SUNRISE
 
 __version__ = "0.1.0"
 

@@ -7,7 +7,6 @@ import pytest
 import torch as th
 
 from sb3_sera.sera.aggregation import (
-    aggregate_actor,
     aggregate_target,
     correlation_matrix,
     critic_correlation,
@@ -139,18 +138,16 @@ def test_target_aggregation_modes():
         aggregate_target(q, "max")  # type: ignore[arg-type]
 
 
-def test_actor_aggregation_modes_and_selected_critic():
+def test_selected_critic_by_hand():
+    # The critic the actor's value comes from, per sample: the median (the paper's Algorithm 2, line 24) or the min
     q = th.tensor([[1.0, 2.0, 4.0], [3.0, -1.0, 0.0]], requires_grad=True)
-    assert aggregate_actor(q, "median").tolist() == [2.0, 0.0]
-    assert aggregate_actor(q, "mean").tolist() == pytest.approx([7 / 3, 2 / 3])
-    assert aggregate_actor(q, "min").tolist() == [1.0, -1.0]
-    for mode in ("median", "min"):
-        index = selected_critic(q, mode)
-        assert index is not None
-        assert th.equal(q.gather(1, index.unsqueeze(1)).squeeze(1), aggregate_actor(q, mode))
+    median, minimum = selected_critic(q, "median"), selected_critic(q, "min")
+    assert median is not None and minimum is not None
+    assert q.gather(1, median.unsqueeze(1)).squeeze(1).tolist() == [2.0, 0.0]
+    assert q.gather(1, minimum.unsqueeze(1)).squeeze(1).tolist() == [1.0, -1.0]
     assert selected_critic(q, "mean") is None
     # The median actor's gradient reaches the median critic only
-    aggregate_actor(q, "median").sum().backward()
+    q.gather(1, median.unsqueeze(1)).sum().backward()
     assert q.grad is not None
     assert q.grad.tolist() == [[0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
 

@@ -108,3 +108,12 @@ def test_grid_on_a_local_ray_instance(tmp_path):
         ray.shutdown()
     assert sorted(result.variant for result in results) == ["ensemble_mean", "serasac"]
     assert (tmp_path / "out" / "serasac" / "Pendulum-v1_1" / "evaluations.npz").exists()
+
+
+def test_a_variant_on_a_task_of_the_other_kind_is_refused_before_any_run(tmp_path):
+    # Read from the classes' declared capabilities: SUNRISE is single-agent only
+    grid = GRID.replace("ensemble_mean: {algo: serasac, target_aggregation: mean}", "sunrise: {}").replace(
+        "tasks: [Pendulum-v1]", "tasks: [sb3_sera/SimpleSpread-v0]"
+    )
+    with pytest.raises(ValueError, match="variant sunrise is single-agent only: train it on a Gymnasium task"):
+        bench.load_grid(write(tmp_path, grid))

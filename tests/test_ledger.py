@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import yaml
 
-from sb3_sera.common.callbacks import BIAS_FILE, DIAGNOSTICS_FILE
 from sb3_sera.experiments import bench, claims, ledger
+from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sb3_sera.experiments.report import load_runs
 from sb3_sera.experiments.runs import read_record
 

@@ -9,7 +9,7 @@ import pytest
 import yaml
 from nbclient import NotebookClient
 
-from sb3_sera.common.callbacks import BIAS_FILE, DIAGNOSTICS_FILE
+from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 
 NOTEBOOKS = sorted((Path(__file__).parents[1] / "notebooks").glob("*.ipynb"))
 # Each notebook's run folder under SB3_SERA_NOTEBOOK_OUT, and the study it reads from the ledger

@@ -202,3 +202,12 @@ def test_an_algorithm_on_a_task_of_the_other_kind_is_refused_with_the_reason(alg
         zoo_argv("train", ["--algo", algo, "--env", env])
     with pytest.raises(SystemExit, match=message):
         main(["train", "--algo", algo, "--env", env, "-n", "10"])
+
+
+def test_the_zoo_reads_the_capabilities_the_classes_declare():
+    from sb3_sera.common.capabilities import Capabilities, capabilities
+
+    assert all(issubclass(algo, Capabilities) for algo in ZOO_ALGOS.values())
+    assert set(SINGLE_AGENT_ALGOS) == {name for name, algo in ZOO_ALGOS.items() if not capabilities(algo)["multi_agent"]}
+    assert set(MULTI_AGENT_ALGOS) == {"iet"} and set(SINGLE_AGENT_ALGOS) == {"sunrise", "ace"}
+    assert not capabilities(ZOO_ALGOS["mappo"])["off_policy"] and capabilities(ZOO_ALGOS["masac"])["tunes_like"] == "sac"

@@ -15,6 +15,7 @@ from stable_baselines3.common.utils import polyak_update
 
 from sb3_sera.ace.policies import ACEPolicy, MlpPolicy
 from sb3_sera.common.arguments import check_gymnasium_env, checks_keywords
+from sb3_sera.common.capabilities import Capabilities
 from sb3_sera.common.checks import (
     check_choice,
     check_finite,
@@ -49,7 +50,7 @@ class DecayingNormalNoise(ActionNoise):
         return f"DecayingNormalNoise(sigma={self.sigma}, initial_sigma={self.initial_sigma})"
 
 
-class ACE(NamedRuns, OffPolicyAlgorithm):
+class ACE(NamedRuns, Capabilities, OffPolicyAlgorithm):
     """
     ACE: Actor Ensemble with tree search. DDPG-style and deterministic: ``n_actors`` actor heads and one critic over a
     shared state feature, with learned reward and transition models in feature space. Each action is chosen by a
@@ -94,6 +95,8 @@ class ACE(NamedRuns, OffPolicyAlgorithm):
     :param device: torch device
     :param _init_setup_model: build the networks now
     """
+
+    multi_agent: ClassVar[bool] = False
 
     #: SB3's names for Dict observations reach the policy too, so that a multi-agent task gets ACE's own reason
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {

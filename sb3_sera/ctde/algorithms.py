@@ -18,6 +18,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 
 from sb3_sera.common.arguments import check_keywords
+from sb3_sera.common.capabilities import Capabilities
 from sb3_sera.common.checks import FiniteUpdates, check_hyperparameters, check_rollout_buffer, with_env_step_check
 from sb3_sera.ctde.policies import MAPPOPolicy, MASACPolicy, MATD3Policy, fill_agent_layout, make_env_for_policy
 
@@ -31,7 +32,7 @@ def _sb3_algorithm(algorithm_class: type[BaseAlgorithm]) -> type[BaseAlgorithm]:
     )
 
 
-class _CTDEAlgorithm(BaseAlgorithm):
+class _CTDEAlgorithm(Capabilities, BaseAlgorithm):
     """
     What each multi-agent algorithm adds to its SB3 algorithm (comes first in the bases): a CTDE env refuses any
     policy but ``"CTDEPolicy"``, and the CTDE policy learns the agents' action sizes from the env. Each algorithm
@@ -81,6 +82,7 @@ class MASAC(_CTDEAlgorithm, SAC):
     """Multi-agent SAC: SB3's SAC with per-agent actors and twin centralized critics (``"CTDEPolicy"``)."""
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {**SAC.policy_aliases, "CTDEPolicy": MASACPolicy}
+    tunes_like: ClassVar[str | None] = "sac"
     __signature__ = inspect.signature(SAC)
 
     def _loss_optimizers(self) -> dict[str, th.optim.Optimizer]:
@@ -94,6 +96,7 @@ class MATD3(_CTDEAlgorithm, TD3):
     """Multi-agent TD3: SB3's TD3 with per-agent deterministic actors and twin centralized critics."""
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {**TD3.policy_aliases, "CTDEPolicy": MATD3Policy}
+    tunes_like: ClassVar[str | None] = "td3"
     __signature__ = inspect.signature(TD3)
 
     def _loss_optimizers(self) -> dict[str, th.optim.Optimizer]:
@@ -104,6 +107,7 @@ class MADDPG(_CTDEAlgorithm, DDPG):
     """Multi-agent DDPG: SB3's DDPG with per-agent deterministic actors and one centralized critic."""
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {**DDPG.policy_aliases, "CTDEPolicy": MATD3Policy}
+    tunes_like: ClassVar[str | None] = "ddpg"
     __signature__ = inspect.signature(DDPG)
 
     def _loss_optimizers(self) -> dict[str, th.optim.Optimizer]:
@@ -114,6 +118,9 @@ class MAPPO(_CTDEAlgorithm, PPO):
     """Multi-agent PPO: SB3's PPO with per-agent Gaussian actors and a centralized value V(state)."""
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {**PPO.policy_aliases, "CTDEPolicy": MAPPOPolicy}
+    off_policy: ClassVar[bool] = False
+    has_q_critics: ClassVar[bool] = False
+    tunes_like: ClassVar[str | None] = "ppo"
     __signature__ = inspect.signature(PPO)
 
     def _loss_optimizers(self) -> dict[str, th.optim.Optimizer]:

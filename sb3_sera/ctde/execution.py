@@ -15,7 +15,7 @@ import json
 import pickle
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, cast
+from typing import Any, Protocol, cast, runtime_checkable
 
 import numpy as np
 import torch as th
@@ -30,15 +30,37 @@ from torch.nn.modules import activation
 
 from sb3_sera.ctde.env import STATE_KEY
 from sb3_sera.ctde.policies import CTDEActor, GaussianAgentActor, MAPPOPolicy
-from sb3_sera.iet.policies import IETAgentActor
 
-# Most specific first: an IET actor is a SAC actor
-_ACTOR_CLASSES: dict[str, type[BasePolicy]] = {
-    "iet": IETAgentActor,
-    "sac": SACActor,
-    "td3": TD3Actor,
-    "ppo": GaussianAgentActor,
-}
+#: The actor classes a controller folder may hold, by the kind it records (an algorithm whose agents' actors are of
+#: another class adds it with :func:`register_actor_kind`, as IET does)
+ACTOR_KINDS: dict[str, type[BasePolicy]] = {"sac": SACActor, "td3": TD3Actor, "ppo": GaussianAgentActor}
+
+
+def register_actor_kind(kind: str, actor_class: type[BasePolicy]) -> None:
+    """Let :class:`DecentralizedActors` save and load agents' actors of ``actor_class``, recorded as ``kind``."""
+    ACTOR_KINDS[kind] = actor_class
+
+
+def actor_kind(actor: BasePolicy) -> str:
+    """The recorded kind of an actor: its own class's, else that of the nearest registered base class."""
+    for actor_class in type(actor).__mro__:
+        for kind, registered in ACTOR_KINDS.items():
+            if registered is actor_class:
+                return kind
+    raise ValueError(f"{type(actor).__name__} is not a known actor class: expected one of {sorted(ACTOR_KINDS)}")
+
+
+@runtime_checkable
+class LatentActor(Protocol):
+    """An agent's actor that also reads a per-episode latent of its agent (IET's): its size and how one is drawn."""
+
+    latent_dim: int
+
+    def draw_latent(self, rng: np.random.Generator) -> np.ndarray:
+        """A new latent for the agent's next episode, from ``rng``."""
+        ...
+
+
 #: The version of what :meth:`DecentralizedActors.save` writes (2: tensors-only weights, arguments in JSON)
 FORMAT_VERSION = 2
 #: The dtypes a saved Box may have
@@ -126,9 +148,9 @@ class DecentralizedActors:
     :param action_spaces: each agent's own action space
     :param seed: seed of the IET actors' latents (:meth:`reset`)
 
-    IET's actors (:class:`~sb3_sera.iet.policies.IETAgentActor`) also read their agent's latent, drawn from
-    ``N(0, I)`` when the controllers are made and at each :meth:`reset`: call it at the start of every episode, as
-    IET was trained. The other actors have no latent and :meth:`reset` leaves them as they are.
+    Actors that also read their agent's latent (:class:`LatentActor`: IET's) get one drawn by the actor itself when
+    the controllers are made and at each :meth:`reset`: call it at the start of every episode, as IET was trained.
+    The other actors have no latent and :meth:`reset` leaves them as they are.
     """
 
     def __init__(self, actors: Mapping[str, BasePolicy], action_spaces: Mapping[str, spaces.Box], seed: int | None = None):
@@ -142,13 +164,11 @@ class DecentralizedActors:
         self.reset()
 
     def reset(self, seed: int | None = None) -> None:
-        """Start an episode: each IET actor's agent draws a new latent (``seed``: reseed the latents first)."""
+        """Start an episode: each latent actor's agent draws a new latent (``seed``: reseed the latents first)."""
         if seed is not None:
             self.rng = np.random.default_rng(seed)
         self.latents = {
-            agent: self.rng.standard_normal(actor.latent_dim, dtype=np.float32)
-            for agent, actor in self.actors.items()
-            if isinstance(actor, IETAgentActor)
+            agent: actor.draw_latent(self.rng) for agent, actor in self.actors.items() if isinstance(actor, LatentActor)
         }
 
     @classmethod
@@ -217,7 +237,7 @@ class DecentralizedActors:
         folder.mkdir(parents=True, exist_ok=True)
         layout: dict[str, Any] = {}
         for index, (agent, actor) in enumerate(self.actors.items()):
-            kind = next(name for name, actor_class in _ACTOR_CLASSES.items() if isinstance(actor, actor_class))
+            kind = actor_kind(actor)
             th.save(actor.state_dict(), folder / f"actor_{index}.pth")
             space = self.action_spaces[agent]
             layout[agent] = {
@@ -249,12 +269,12 @@ class DecentralizedActors:
         layout: dict[str, Any] = saved["agents"]
         actors: dict[str, BasePolicy] = {}
         for agent, entry in layout.items():
-            if entry["kind"] not in _ACTOR_CLASSES:
-                raise ValueError(f"kind={entry['kind']!r} is invalid: expected one of {', '.join(map(repr, _ACTOR_CLASSES))}")
+            if entry["kind"] not in ACTOR_KINDS:
+                raise ValueError(f"kind={entry['kind']!r} is invalid: expected one of {', '.join(map(repr, ACTOR_KINDS))}")
             file = entry["file"]
             if not isinstance(file, str) or Path(file).name != file or file in ("", ".", ".."):
                 raise ValueError(f"file={file!r} is invalid: expected a file name in {folder}")
-            actor = _ACTOR_CLASSES[entry["kind"]](**_decode_arguments(entry["arguments"]))
+            actor = ACTOR_KINDS[entry["kind"]](**_decode_arguments(entry["arguments"]))
             actor.load_state_dict(_load_weights(folder / file))
             actors[agent] = actor
         action_spaces = {

@@ -22,7 +22,6 @@ from torch import nn
 
 from sb3_sera.common.arguments import check_gymnasium_env
 from sb3_sera.ctde.env import STATE_KEY, CTDEEnv
-from sb3_sera.sera.policies import SERAPolicy
 
 
 class StateExtractor(BaseFeaturesExtractor):
@@ -235,10 +234,11 @@ class CTDEActor(BaseModel):
         return self(observation, deterministic)
 
 
-class _CTDEMixin:
+class CTDEPolicyMixin:
     """
     What the CTDE variants of SB3's off-policy policies add to them: per-agent actors (of ``agent_actor_class``)
-    and the state-only critic input. Comes first in the bases, before the SB3 policy it extends.
+    and the state-only critic input. Comes first in the bases, before the SB3 policy it extends: MASAC's and
+    MATD3's here, SERASAC's (:class:`~sb3_sera.sera.policies.SERACTDEPolicy`) and IET's with their algorithms.
     """
 
     agent_actor_class: type[BasePolicy]
@@ -291,10 +291,10 @@ class _CTDEMixin:
 
 def is_ctde_policy(policy_class: type) -> bool:
     """Whether ``policy_class`` is one of the CTDE policies (it then needs ``agent_action_dims``)."""
-    return issubclass(policy_class, (_CTDEMixin, MAPPOPolicy))
+    return issubclass(policy_class, (CTDEPolicyMixin, MAPPOPolicy))
 
 
-class MASACPolicy(_CTDEMixin, SACPolicy):  # type: ignore[misc]
+class MASACPolicy(CTDEPolicyMixin, SACPolicy):  # type: ignore[misc]
     """
     SAC's policy for CTDE: per-agent squashed Gaussian actors, twin centralized critics on (state, joint action).
 
@@ -305,19 +305,7 @@ class MASACPolicy(_CTDEMixin, SACPolicy):  # type: ignore[misc]
     agent_actor_class = SACActor
 
 
-class SERACTDEPolicy(_CTDEMixin, SERAPolicy):  # type: ignore[misc]
-    """
-    SERASAC's policy for CTDE: per-agent squashed Gaussian actors, the heterogeneous critic ensemble on
-    (state, joint action).
-
-    Takes :class:`~sb3_sera.sera.policies.SERAPolicy`'s arguments (``n_critics``, ``critic_archs``, ...) plus
-    ``agent_action_dims`` and ``share_actor`` (see :class:`MASACPolicy`).
-    """
-
-    agent_actor_class = SACActor
-
-
-class MATD3Policy(_CTDEMixin, TD3Policy):  # type: ignore[misc]
+class MATD3Policy(CTDEPolicyMixin, TD3Policy):  # type: ignore[misc]
     """
     TD3's (and DDPG's) policy for CTDE: per-agent deterministic actors, centralized critics on (state, joint action).
 

@@ -39,8 +39,8 @@ from pathlib import Path
 
 import numpy as np
 
-from sb3_sera.common.callbacks import DIAGNOSTICS_FILE
 from sb3_sera.experiments import stats
+from sb3_sera.experiments.evaluation import DIAGNOSTICS_FILE
 from sb3_sera.experiments.runs import NPZ_ERRORS, RunResult
 
 #: Runs each side needs before an interval or a verdict is given

@@ -24,7 +24,7 @@ from typing import Any
 
 import yaml
 
-from sb3_sera.common.callbacks import BIAS_FILE, DIAGNOSTICS_FILE
+from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sb3_sera.experiments.report import Skipped, group_runs, load_runs, section_table, write_report
 from sb3_sera.experiments.runs import RESULT_FILE, RunResult, env_name, read_record, run_ids
 

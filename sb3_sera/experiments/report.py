@@ -26,9 +26,9 @@ import numpy as np
 import yaml
 from numpy.typing import ArrayLike
 
-from sb3_sera.common.callbacks import DIAGNOSTICS_FILE
 from sb3_sera.experiments import stats
 from sb3_sera.experiments.claims import claims_section
+from sb3_sera.experiments.evaluation import DIAGNOSTICS_FILE
 from sb3_sera.experiments.runs import NPZ_ERRORS, RESULT_FILE, RunResult, env_name, load_result, read_record
 
 #: Paper Table 1 (multi-agent, 300K steps) and Table 2 (single-agent): (mean, std) of the team return

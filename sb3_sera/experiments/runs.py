@@ -47,9 +47,9 @@ from stable_baselines3.common.noise import NormalActionNoise, OrnsteinUhlenbeckA
 from stable_baselines3.common.vec_env import VecEnv
 from tqdm import tqdm
 
-from sb3_sera.common.callbacks import BIAS_FILE, InitialStateBiasCallback, initial_state_bias
 from sb3_sera.common.mujoco_log import route_mujoco_warnings
 from sb3_sera.ctde.env import STATE_KEY
+from sb3_sera.experiments.evaluation import BIAS_FILE, InitialStateBiasCallback, initial_state_bias
 from sb3_sera.experiments.policy_kwargs import parse_policy_kwargs
 
 #: rl-zoo3 keys that describe the run rather than the algorithm
@@ -247,6 +247,9 @@ def make_spec(
     A run with the task's hyperparameters from ``hyperparams/<algo>.yml`` (see :func:`default_hyperparams`), then
     ``overrides``; ``ValueError`` for a key ``algo`` does not take.
     """
+    from sb3_sera.experiments.zoo import check_algo_task
+
+    check_algo_task(algo, env_id)
     defaults, source = default_hyperparams(algo, env_id)
     hyperparams = {**defaults, **(overrides or {})}
     hyperparams.pop("n_timesteps", None)

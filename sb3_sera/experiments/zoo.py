@@ -15,8 +15,9 @@ import gymnasium as gym
 from stable_baselines3.common.base_class import BaseAlgorithm
 
 from sb3_sera.ace import ACE
-from sb3_sera.common.callbacks import InitialStateBiasCallback
+from sb3_sera.common.capabilities import capabilities
 from sb3_sera.ctde.algorithms import MADDPG, MAPPO, MASAC, MATD3
+from sb3_sera.experiments.evaluation import InitialStateBiasCallback
 from sb3_sera.iet import IET
 from sb3_sera.sera import SERASAC
 from sb3_sera.sunrise import SUNRISE
@@ -32,8 +33,10 @@ ZOO_ALGOS: dict[str, type[BaseAlgorithm]] = {
     "ace": ACE,
     "iet": IET,
 }
-#: The multi-agent algorithms tune in the search space of the SB3 algorithm they are built on
-ZOO_BASE_ALGOS = {"masac": "sac", "matd3": "td3", "maddpg": "ddpg", "mappo": "ppo"}
+#: The algorithms that tune in the search space of the SB3 algorithm they are built on (their ``tunes_like``)
+ZOO_BASE_ALGOS = {
+    name: capabilities(algo)["tunes_like"] for name, algo in ZOO_ALGOS.items() if capabilities(algo)["tunes_like"]
+}
 
 
 def hyperparams_dir() -> Path:
@@ -53,11 +56,11 @@ ZOO_COMMANDS = ("train", "enjoy", "record-video", "optimize")
 PLAYBACK_COMMANDS = ("enjoy", "record-video")
 #: The package's off-policy algorithms (rl-zoo3's ``off_policy_algos``, which its enjoy and record-video load with a
 #: one-transition replay buffer; that list is local to those commands, so :func:`playback_algos` does it for ours)
-ZOO_OFF_POLICY_ALGOS = ("serasac", "masac", "matd3", "maddpg", "sunrise", "ace", "iet")
-#: The single-agent baselines (no CTDE tasks)
-SINGLE_AGENT_ALGOS = ("sunrise", "ace")
+ZOO_OFF_POLICY_ALGOS = tuple(name for name, algo in ZOO_ALGOS.items() if capabilities(algo)["off_policy"])
+#: The single-agent-only algorithms (no CTDE tasks)
+SINGLE_AGENT_ALGOS = tuple(name for name, algo in ZOO_ALGOS.items() if not capabilities(algo)["multi_agent"])
 #: The multi-agent-only algorithms (CTDE tasks alone)
-MULTI_AGENT_ALGOS = ("iet",)
+MULTI_AGENT_ALGOS = tuple(name for name, algo in ZOO_ALGOS.items() if not capabilities(algo)["single_agent"])
 
 
 def _actor_only(hyperparams: dict[str, Any]) -> dict[str, Any]:
@@ -153,7 +156,7 @@ def convert_ace_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
 def register_with_zoo(command: str = "train") -> None:
     """
     Add the package's algorithms, samplers and converters to rl-zoo3's tables, and make its evaluations also record
-    the initial-state value bias (:class:`~sb3_sera.common.callbacks.InitialStateBiasCallback`); idempotent.
+    the initial-state value bias (:class:`~sb3_sera.experiments.evaluation.InitialStateBiasCallback`); idempotent.
 
     :param command: the zoo command about to run; for ``enjoy`` and ``record-video`` the algorithms are those of
         :func:`playback_algos`

@@ -23,7 +23,7 @@ from sb3_sera.common.checks import check_int
 from sb3_sera.common.naming import NamedRuns
 from sb3_sera.ctde.algorithms import MASAC
 from sb3_sera.ctde.policies import agent_action_dims_of
-from sb3_sera.iet.latents import LATENT_KEY, LatentVecEnv
+from sb3_sera.iet.latents import LATENT_KEY, LatentVecEnv, draw_latents
 from sb3_sera.iet.networks import routing_entropy
 from sb3_sera.iet.policies import IETPolicy
 
@@ -63,6 +63,9 @@ class IET(NamedRuns, MASAC):
     ``train/routing_latent_std`` (standard deviation of the final routing weights over fresh latents for the same
     observations: how much the latent chooses among the modules).
     """
+
+    single_agent: ClassVar[bool] = False
+    tunes_like: ClassVar[str | None] = None
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"CTDEPolicy": IETPolicy}
     policy: IETPolicy
@@ -177,13 +180,13 @@ class IET(NamedRuns, MASAC):
         observations = {
             key: buffer.to_torch(values[indices].reshape(-1, *values.shape[2:])) for key, values in buffer.observations.items()
         }
-        generator = th.Generator(device=self.device).manual_seed(0)
-        latents = observations[LATENT_KEY]
+        rng = np.random.default_rng(0)
+        n_samples, n_agents, latent_dim = observations[LATENT_KEY].shape
         with th.no_grad():
             matrices, finals = self.policy.routing(observations)
             fresh = [
                 self.policy.routing(
-                    {**observations, LATENT_KEY: th.randn(latents.shape, generator=generator, device=self.device)}
+                    {**observations, LATENT_KEY: buffer.to_torch(draw_latents(rng, n_samples, n_agents, latent_dim))}
                 )[1]
                 for _ in range(ROUTING_LATENT_DRAWS)
             ]

@@ -17,8 +17,9 @@ from stable_baselines3.sac.policies import SACPolicy
 from torch import nn
 
 from sb3_sera.ctde.env import STATE_KEY
-from sb3_sera.ctde.policies import CTDEActor, _CTDEMixin
-from sb3_sera.iet.latents import LATENT_KEY
+from sb3_sera.ctde.execution import register_actor_kind
+from sb3_sera.ctde.policies import CTDEActor, CTDEPolicyMixin
+from sb3_sera.iet.latents import LATENT_KEY, draw_latents
 from sb3_sera.iet.networks import SoftModularNetwork
 
 
@@ -94,6 +95,10 @@ class IETAgentActor(SACActor):
     def modular_network(self) -> SoftModularNetwork:
         return cast(SoftModularNetwork, self.latent_pi)
 
+    def draw_latent(self, rng: np.random.Generator) -> np.ndarray:
+        """A new latent of the agent's next episode, as training draws them (:func:`~sb3_sera.iet.latents.draw_latents`)."""
+        return draw_latents(rng, 1, 1, self.latent_dim)[0, 0]
+
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
         for key in ("net_arch", "activation_fn", "use_sde", "log_std_init", "full_std", "use_expln", "clip_mean"):
@@ -130,7 +135,7 @@ class IETActor(CTDEActor):
         return th.stack(matrices), th.stack(finals)
 
 
-class IETPolicy(_CTDEMixin, SACPolicy):  # type: ignore[misc]
+class IETPolicy(CTDEPolicyMixin, SACPolicy):  # type: ignore[misc]
     """
     IET's policy on a CTDE task: per-agent squashed Gaussian actors whose hidden layers are soft-modular networks
     driven by the agent's per-episode latent, and twin centralized critics on (state, every latent, joint action).
@@ -214,18 +219,25 @@ class IETPolicy(_CTDEMixin, SACPolicy):  # type: ignore[misc]
 
     def next_latents(self, n_envs: int, state: tuple[np.ndarray, ...] | None, episode_start: np.ndarray | None) -> np.ndarray:
         """The latents to act with: ``state``'s, drawn anew where there are none or an episode starts."""
-        shape = (n_envs, len(self.agent_action_dims), self.latent_dim)
+        n_agents = len(self.agent_action_dims)
+        shape = (n_envs, n_agents, self.latent_dim)
+        # Drawn as training draws them, from a generator seeded by torch's global one (as SB3's predict samples)
+        rng = np.random.default_rng(int(th.randint(0, 2**62, (1,)).item()))
         if state is None:
-            return th.randn(shape).numpy()
+            return draw_latents(rng, n_envs, n_agents, self.latent_dim)
         latents = np.array(state[0], dtype=np.float32)
         if latents.shape != shape:
             raise ValueError(f"IET's state is the agents' latents, shape {shape} for these observations, got {latents.shape}")
         if episode_start is not None:
             starts = np.asarray(episode_start, dtype=bool).reshape(n_envs)
-            latents[starts] = th.randn((int(starts.sum()), *shape[1:])).numpy()
+            latents[starts] = draw_latents(rng, int(starts.sum()), n_agents, self.latent_dim)
         return latents
 
     def routing(self, obs: PyTorchObs) -> tuple[th.Tensor, th.Tensor]:
         """The actors' routing on a batch of observations with latents (see :meth:`IETActor.routing`)."""
         assert isinstance(obs, dict)
         return cast(IETActor, self.actor).routing(obs)
+
+
+# Decentralized controllers save and load IET's agents' actors
+register_actor_kind("iet", IETAgentActor)

@@ -2,7 +2,8 @@
 Ensemble aggregation rules of SERA (paper section 4.1, SPEC section 1, steps 2-4, 7 and 8).
 
 Every function here is a pure function of tensors of critic values with shape ``(batch_size, n_critics)``,
-so it can be unit-tested on hand-computed numbers and reused by the multi-agent algorithms.
+unit-tested on hand-computed numbers; SERASAC calls them on single-agent and CTDE tasks alike, the evaluations'
+critic diagnostics call the correlation helpers.
 """
 
 from typing import Literal, NamedTuple
@@ -121,28 +122,11 @@ def aggregate_target(
     raise ValueError(f"Unknown target aggregation {mode!r}, expected one of {TARGET_AGGREGATIONS}")
 
 
-def aggregate_actor(q_values: th.Tensor, mode: ActorAggregation = "median") -> th.Tensor:
-    """
-    Reduce online critic values at the actor's actions to the value the actor maximizes.
-
-    :param q_values: online critic values, shape ``(batch_size, n_critics)``
-    :param mode: ``"median"`` (the paper's centralized value, Algorithm 2 line 24), ``"mean"`` or ``"min"``
-    :return: the aggregated values, shape ``(batch_size,)``, differentiable
-    """
-    if mode == "median":
-        return median_anchor(q_values)[0]
-    if mode == "mean":
-        return q_values.mean(dim=1)
-    if mode == "min":
-        return q_values.min(dim=1).values
-    raise ValueError(f"Unknown actor aggregation {mode!r}, expected one of {ACTOR_AGGREGATIONS}")
-
-
 def selected_critic(q_values: th.Tensor, mode: ActorAggregation) -> th.Tensor | None:
     """
-    For the aggregations that pick one critic per sample, the index of that critic.
-
-    ``aggregate_actor(q, mode) == q.gather(1, index)`` for ``"median"`` and ``"min"``; ``"mean"`` picks none.
+    For the actor aggregations that pick one critic per sample, the index of that critic: the actor's value is
+    ``q.gather(1, index)``, the median (the paper's Algorithm 2, line 24) or the min; ``"mean"`` picks none (the
+    actor then maximizes the critics' mean).
 
     :param q_values: critic values, shape ``(batch_size, n_critics)``
     :param mode: the actor aggregation

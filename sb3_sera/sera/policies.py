@@ -15,10 +15,12 @@ from stable_baselines3.common.torch_layers import (
     get_actor_critic_arch,
 )
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
+from stable_baselines3.sac.policies import Actor as SACActor
 from stable_baselines3.sac.policies import SACPolicy
 from torch import nn
 
 from sb3_sera.common.checks import check_int
+from sb3_sera.ctde.policies import CTDEPolicyMixin
 
 #: Hidden layers of the paper's heterogeneous critics (Table 4); critic ``i`` uses ``CRITIC_ARCHS[i % 5]``.
 CRITIC_ARCHS: tuple[tuple[int, ...], ...] = (
@@ -70,7 +72,7 @@ def check_critic_archs(critic_archs: list[list[int]], n_critics: int) -> None:
             raise ValueError(f"critic_archs[{idx}]={arch!r} is invalid: hidden layer sizes must be positive integers")
 
 
-class EnsembleCritic(BaseModel):
+class HeterogeneousCritics(BaseModel):
     """
     ``n_critics`` Q-networks, each with its own hidden layers, reading the same features and action.
 
@@ -206,8 +208,8 @@ class SERAPolicy(SACPolicy):
     :param share_features_extractor: Whether to share the features extractor between the actor and the critics
     """
 
-    critic: EnsembleCritic  # type: ignore[assignment]
-    critic_target: EnsembleCritic  # type: ignore[assignment]
+    critic: HeterogeneousCritics  # type: ignore[assignment]
+    critic_target: HeterogeneousCritics  # type: ignore[assignment]
 
     def __init__(
         self,
@@ -273,11 +275,11 @@ class SERAPolicy(SACPolicy):
             **self.optimizer_kwargs,
         )
 
-    def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> EnsembleCritic:  # type: ignore[override]
+    def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> HeterogeneousCritics:  # type: ignore[override]
         critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
         # SACPolicy's kwargs describe a homogeneous ensemble: replace them by the per-critic architectures
         del critic_kwargs["net_arch"], critic_kwargs["n_critics"]
-        return EnsembleCritic(critic_archs=self.critic_archs, **critic_kwargs).to(self.device)
+        return HeterogeneousCritics(critic_archs=self.critic_archs, **critic_kwargs).to(self.device)
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
@@ -318,3 +320,15 @@ class MultiInputPolicy(SERAPolicy):
         super().__init__(
             observation_space, action_space, lr_schedule, features_extractor_class=features_extractor_class, **kwargs
         )
+
+
+class SERACTDEPolicy(CTDEPolicyMixin, SERAPolicy):  # type: ignore[misc]
+    """
+    SERASAC's policy for CTDE: per-agent squashed Gaussian actors, the heterogeneous critic ensemble on
+    (state, joint action).
+
+    Takes :class:`SERAPolicy`'s arguments (``n_critics``, ``critic_archs``, ...) plus ``agent_action_dims`` and
+    ``share_actor`` (see :class:`~sb3_sera.ctde.policies.MASACPolicy`).
+    """
+
+    agent_actor_class = SACActor

@@ -9,11 +9,12 @@ from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, PyTorchObs, Schedule
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, PyTorchObs, ReplayBufferSamples, Schedule
 from stable_baselines3.common.utils import FloatSchedule, polyak_update
 from stable_baselines3.sac import SAC
 
 from sb3_sera.common.arguments import checks_keywords
+from sb3_sera.common.capabilities import Capabilities
 from sb3_sera.common.checks import (
     check_choice,
     check_ent_coef,
@@ -25,7 +26,7 @@ from sb3_sera.common.checks import (
     with_env_step_check,
 )
 from sb3_sera.common.naming import NamedRuns
-from sb3_sera.ctde.policies import SERACTDEPolicy, fill_agent_layout, make_env_for_policy
+from sb3_sera.ctde.policies import fill_agent_layout, make_env_for_policy
 from sb3_sera.sera.aggregation import (
     ACTOR_AGGREGATIONS,
     TARGET_AGGREGATIONS,
@@ -40,7 +41,7 @@ from sb3_sera.sera.aggregation import (
     selected_critic,
     td_error_correlation,
 )
-from sb3_sera.sera.policies import CnnPolicy, EnsembleCritic, MlpPolicy, MultiInputPolicy, SERAPolicy
+from sb3_sera.sera.policies import CnnPolicy, HeterogeneousCritics, MlpPolicy, MultiInputPolicy, SERACTDEPolicy, SERAPolicy
 from sb3_sera.sera.step_size import StepSizeUpdate, VarianceAdaptiveStepSize, batch_variance
 
 #: Learning rate of the actor and the entropy coefficient, as SB3's SAC
@@ -66,7 +67,7 @@ class CriticUpdate(NamedTuple):
     step_size: StepSizeUpdate
 
 
-class SERASAC(NamedRuns, SAC):
+class SERASAC(NamedRuns, Capabilities, SAC):
     """
     Soft Ensemble Reliability Aggregation on top of Soft Actor-Critic.
 
@@ -148,8 +149,8 @@ class SERASAC(NamedRuns, SAC):
         "CTDEPolicy": SERACTDEPolicy,
     }
     policy: SERAPolicy
-    critic: EnsembleCritic  # type: ignore[assignment]
-    critic_target: EnsembleCritic  # type: ignore[assignment]
+    critic: HeterogeneousCritics  # type: ignore[assignment]
+    critic_target: HeterogeneousCritics  # type: ignore[assignment]
     step_size: VarianceAdaptiveStepSize
 
     @checks_keywords
@@ -373,6 +374,34 @@ class SERASAC(NamedRuns, SAC):
         # Variance-adaptive step size from detached tensors (stored by the caller once checked)
         update = self.step_size.compute(td_errors.detach(), next_q_values - next_q_aggregate)
         return CriticUpdate(next_q_values, next_q_aggregate, target_q_values, current_q_values, critic_loss, update)
+
+    def td_targets(self, replay_data: ReplayBufferSamples) -> tuple[th.Tensor, th.Tensor]:
+        """
+        The TD target ``y`` the critics regress on for a replayed batch (the aggregate of the target critics at next
+        actions drawn from the actor) and the online critics' values: shapes ``(S, 1)`` and ``(S, K)``. Changes
+        nothing (the step-size statistics are computed, not committed); draws the next actions from torch's generator.
+        """
+        discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
+        with th.no_grad():
+            ent_coef = th.exp(self.log_ent_coef) if self.log_ent_coef is not None else self.ent_coef_tensor
+            next_actions, next_log_prob = self.actor.action_log_prob(replay_data.next_observations)
+            update = self._critic_update_eager(
+                replay_data.observations,
+                replay_data.actions,
+                replay_data.next_observations,
+                replay_data.rewards,
+                replay_data.dones,
+                discounts,
+                next_actions,
+                next_log_prob.reshape(-1, 1),
+                ent_coef,
+            )
+        return update.target_q_values, update.current_q_values
+
+    def critic_learning_rates(self) -> list[float]:
+        """Each critic's current learning rate, in critic order."""
+        rates = {group["critic_index"]: group["lr"] for group in self.critic.optimizer.param_groups}
+        return [rates[index] for index in range(self.critic.n_critics)]
 
     def train(self, gradient_steps: int, batch_size: int = 64) -> None:
         # Switch to train mode (this affects batch norm / dropout)

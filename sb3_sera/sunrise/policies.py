@@ -87,7 +87,7 @@ class EnsembleActor(BaseModel):
         return th.tanh(self(obs)[0])
 
 
-class EnsembleCritic(BaseModel):
+class MemberCritics(BaseModel):
     """
     ``n_critics`` Q-networks per member for ``n_members`` members, ``n_members * n_critics`` MLPs in one stack
     (member ``m``'s critics are rows ``m * n_critics`` to ``(m + 1) * n_critics - 1``).
@@ -178,8 +178,8 @@ class SUNRISEPolicy(BasePolicy):
     """
 
     actor: EnsembleActor
-    critic: EnsembleCritic
-    critic_target: EnsembleCritic
+    critic: MemberCritics
+    critic_target: MemberCritics
 
     def __init__(
         self,
@@ -225,8 +225,8 @@ class SUNRISEPolicy(BasePolicy):
             **self.optimizer_kwargs,
         )
         critic_kwargs = dict(net_arch=critic_arch, n_critics=self.n_critics)
-        self.critic = EnsembleCritic(**self._network_kwargs(), **critic_kwargs).to(self.device)  # type: ignore[arg-type]
-        self.critic_target = EnsembleCritic(**self._network_kwargs(), **critic_kwargs).to(self.device)  # type: ignore[arg-type]
+        self.critic = MemberCritics(**self._network_kwargs(), **critic_kwargs).to(self.device)  # type: ignore[arg-type]
+        self.critic_target = MemberCritics(**self._network_kwargs(), **critic_kwargs).to(self.device)  # type: ignore[arg-type]
         self.critic_target.load_state_dict(self.critic.state_dict())
         self.critic.optimizer = self.optimizer_class(
             self.critic.parameters(),

@@ -15,6 +15,7 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedul
 from stable_baselines3.common.utils import polyak_update
 
 from sb3_sera.common.arguments import check_gymnasium_env, checks_keywords
+from sb3_sera.common.capabilities import Capabilities
 from sb3_sera.common.checks import (
     check_ent_coef,
     check_finite,
@@ -31,13 +32,13 @@ from sb3_sera.sunrise.policies import (
     DEFAULT_N_MEMBERS,
     SINGLE_AGENT_ONLY,
     EnsembleActor,
-    EnsembleCritic,
+    MemberCritics,
     MlpPolicy,
     SUNRISEPolicy,
 )
 
 
-class SUNRISE(NamedRuns, OffPolicyAlgorithm):
+class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
     """
     SUNRISE (Lee, Laskin, Srinivas and Abbeel, ICML 2021): ``n_members`` independent SAC agents, each with its own
     actor, twin critics, target critics and entropy coefficient, trained on its own bootstrap mask of the replayed
@@ -93,11 +94,13 @@ class SUNRISE(NamedRuns, OffPolicyAlgorithm):
     :param _init_setup_model: Whether or not to build the network at the creation of the instance
     """
 
+    multi_agent: ClassVar[bool] = False
+
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpPolicy": MlpPolicy}
     policy: SUNRISEPolicy
     actor: EnsembleActor
-    critic: EnsembleCritic
-    critic_target: EnsembleCritic
+    critic: MemberCritics
+    critic_target: MemberCritics
     replay_buffer: SUNRISEReplayBuffer
 
     @checks_keywords

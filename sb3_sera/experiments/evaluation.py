@@ -17,11 +17,10 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.callbacks import EvalCallback
 from stable_baselines3.common.policies import ActorCriticPolicy
+from stable_baselines3.common.type_aliases import ReplayBufferSamples
 from stable_baselines3.sac import SAC
 from torch import nn
 
-from sb3_sera.iet import IET
-from sb3_sera.sera import SERASAC
 from sb3_sera.sera.aggregation import correlation_matrix, mean_off_diagonal
 
 #: Files written beside ``evaluations.npz`` in the callback's ``log_path``
@@ -73,10 +72,12 @@ class InitialStateBiasCallback(EvalCallback):
         self.records_bias = False
 
     def _init_callback(self) -> None:
-        if isinstance(self.model, IET):
-            # IET's evaluation episodes draw their latents as its training episodes do, from a generator of their own
-            # seeded with the model's seed: evaluations are repeatable and leave training's random streams alone
-            self.eval_env = self.model.with_latents(self.eval_env, seed=self.model.seed)
+        with_latents = getattr(self.model, "with_latents", None)
+        if with_latents is not None:
+            # A model acting on per-episode latents (IET): its evaluation episodes draw them as its training episodes do,
+            # from a generator of their own seeded with the model's seed, so that evaluations are repeatable and leave
+            # training's random streams alone
+            self.eval_env = with_latents(self.eval_env, seed=self.model.seed)
         super()._init_callback()
         policy = self.model.policy
         self.records_bias = _has_value_function(policy) or (
@@ -183,30 +184,13 @@ def critic_diagnostics(model: SAC, batch_size: int) -> dict[str, np.ndarray]:
         ``critic_lr`` (K values)
     """
     assert model.replay_buffer is not None
-    replay_data = model.replay_buffer.sample(batch_size, env=model._vec_normalize_env)
-    discounts = replay_data.discounts if replay_data.discounts is not None else model.gamma
+    replay_data = model.replay_buffer.sample(batch_size, env=model.get_vec_normalize_env())
+    td_targets = getattr(model, "td_targets", None)
     with th.no_grad():
-        ent_coef = th.exp(model.log_ent_coef) if model.log_ent_coef is not None else model.ent_coef_tensor
-        next_actions, next_log_prob = model.actor.action_log_prob(replay_data.next_observations)
-        next_log_prob = next_log_prob.reshape(-1, 1)
-        if isinstance(model, SERASAC):
-            update = model._critic_update_eager(
-                replay_data.observations,
-                replay_data.actions,
-                replay_data.next_observations,
-                replay_data.rewards,
-                replay_data.dones,
-                discounts,
-                next_actions,
-                next_log_prob,
-                ent_coef,
-            )
-            target_q_values, current_q_values = update.target_q_values, update.current_q_values
+        if td_targets is not None:
+            target_q_values, current_q_values = td_targets(replay_data)
         else:
-            next_q_values = th.cat(model.critic_target(replay_data.next_observations, next_actions), dim=1)
-            next_q = th.min(next_q_values, dim=1, keepdim=True).values - ent_coef * next_log_prob
-            target_q_values = replay_data.rewards + (1 - replay_data.dones) * discounts * next_q
-            current_q_values = th.cat(model.critic(replay_data.observations, replay_data.actions), dim=1)
+            target_q_values, current_q_values = sac_td_targets(model, replay_data)
         critic_corr = correlation_matrix(current_q_values)
         td_error_corr = correlation_matrix(target_q_values - current_q_values)
         td_errors = target_q_values - current_q_values
@@ -221,10 +205,24 @@ def critic_diagnostics(model: SAC, batch_size: int) -> dict[str, np.ndarray]:
             "td_error_cov_matrix": th.cov(td_errors.T, correction=0),
         }
     result = {key: value.cpu().numpy() for key, value in values.items()}
-    if isinstance(model, SERASAC):
-        rates = {group["critic_index"]: group["lr"] for group in model.critic.optimizer.param_groups}
-        result["critic_lr"] = np.array([rates[index] for index in range(model.critic.n_critics)])
+    critic_learning_rates = getattr(model, "critic_learning_rates", None)
+    if critic_learning_rates is not None:
+        result["critic_lr"] = np.array(critic_learning_rates())
     return result
+
+
+def sac_td_targets(model: SAC, replay_data: ReplayBufferSamples) -> tuple[th.Tensor, th.Tensor]:
+    """
+    SB3's SAC target for a replayed batch, ``y = r + gamma (1 - d) (min_k Qbar_k(s', a') - alpha log pi(a'|s'))`` with
+    ``a'`` drawn from the actor, and the online critics' values ``Q_k(s, a)``: ``(S, 1)`` and ``(S, K)``.
+    """
+    discounts = replay_data.discounts if replay_data.discounts is not None else model.gamma
+    ent_coef = th.exp(model.log_ent_coef.detach()) if model.log_ent_coef is not None else model.ent_coef_tensor
+    next_actions, next_log_prob = model.actor.action_log_prob(replay_data.next_observations)
+    next_q_values = th.cat(model.critic_target(replay_data.next_observations, next_actions), dim=1)
+    next_q = th.min(next_q_values, dim=1, keepdim=True).values - ent_coef * next_log_prob.reshape(-1, 1)
+    target_q_values = replay_data.rewards + (1 - replay_data.dones) * discounts * next_q
+    return target_q_values, th.cat(model.critic(replay_data.observations, replay_data.actions), dim=1)
 
 
 def observation_at(observations: Any, index: int) -> Any:

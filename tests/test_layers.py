@@ -1,0 +1,94 @@
+"""The package's layers point down only (common < ctde < the algorithms < experiments), with no import cycle, and
+every module imports on its own."""
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+PACKAGE = Path(__file__).resolve().parents[1] / "sb3_sera"
+#: Each subpackage's layer: a module may import its own subpackage and lower layers only
+LAYERS = {"common": 0, "ctde": 1, "sera": 2, "sunrise": 2, "ace": 2, "iet": 2, "experiments": 3}
+
+
+def module_name(path: Path) -> str:
+    parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+MODULES = {module_name(path): path for path in sorted(PACKAGE.rglob("*.py"))}
+
+
+def imports_of(path: Path) -> set[str]:
+    """The package's modules ``path`` imports, at module level or inside functions alike."""
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("sb3_sera"):
+            # "from sb3_sera.x import y": y may be a module of x
+            for alias in node.names:
+                candidate = f"{node.module}.{alias.name}"
+                found.add(candidate if candidate in MODULES else node.module)
+        elif isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names if alias.name.startswith("sb3_sera"))
+    return found
+
+
+def subpackage(module: str) -> str | None:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else None
+
+
+def test_lower_layers_never_import_upper_ones():
+    violations = []
+    for module, path in MODULES.items():
+        own = subpackage(module)
+        if own not in LAYERS:
+            continue  # sb3_sera/__init__.py and __main__.py stand above every layer
+        for imported in imports_of(path):
+            other = subpackage(imported)
+            if other is None or other == own:
+                continue
+            if other not in LAYERS or LAYERS[other] >= LAYERS[own]:
+                violations.append(f"{module} imports {imported}")
+    assert not violations, "\n".join(sorted(violations))
+
+
+def test_every_subpackage_has_a_layer():
+    assert {subpackage(module) for module in MODULES} - {None, "__main__"} == set(LAYERS)
+
+
+def test_no_import_cycle():
+    graph = {module: {m for m in imports_of(path) if m in MODULES and m != module} for module, path in MODULES.items()}
+    # A package's __init__ imports its modules; a module importing its own package's __init__ would close a cycle
+    state: dict[str, int] = {}
+
+    def visit(module: str, trail: list[str]) -> None:
+        state[module] = 1
+        for imported in sorted(graph[module]):
+            if state.get(imported) == 1:
+                pytest.fail("import cycle: " + " -> ".join([*trail[trail.index(imported) :], imported]))
+            if imported not in state:
+                visit(imported, [*trail, imported])
+        state[module] = 2
+
+    for module in sorted(graph):
+        if module not in state:
+            visit(module, [module])
+
+
+@pytest.mark.parametrize("order", ["forward", "backward"])
+def test_every_module_imports_in_either_order(order):
+    modules = sorted(name for name in MODULES if not name.endswith("__main__"))
+    if order == "backward":
+        modules.reverse()
+    script = f"import importlib\nfor name in {modules!r}:\n    importlib.import_module(name)\n"
+    completed = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert completed.returncode == 0, completed.stderr[-3000:]
+
+
+def test_the_package_init_needs_no_import_order():
+    # No comment or noqa asks for an order: the imports are sorted as ruff sorts them
+    text = (PACKAGE / "__init__.py").read_text()
+    assert "order matters" not in text.lower() and "noqa: I001" not in text
