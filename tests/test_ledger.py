@@ -144,10 +144,10 @@ def _claim_run(tmp_path: Path, variant: str, seed: int, mc_corr: float, finals: 
     (folder / "HalfCheetah-v5" / "config.yml").write_text(yaml.safe_dump({"n_timesteps": 300, "learning_starts": 100}))
     steps = np.array([100, 200, 300])
     np.savez(folder / "evaluations.npz", timesteps=steps, results=np.array(finals)[:, None], ep_lengths=np.ones((3, 1)))
-    # Initial-state bias -5, +3, -1 at the three evaluations: |bias| after learning_starts (steps 200, 300) is 2
-    np.savez(
-        folder / BIAS_FILE, timesteps=steps, values=np.array([[-5.0], [3.0], [-1.0]]), discounted_returns=np.zeros((3, 1))
-    )
+    # Values -5, 13, 9 against discounted returns 0, 10, 10: after learning_starts (steps 200, 300) the biases are
+    # 3 and -1 against returns of 10 and 10, a relative bias of (3 + 1) / 20 = 0.2
+    values, returns = np.array([[-5.0], [13.0], [9.0]]), np.array([[0.0], [10.0], [10.0]])
+    np.savez(folder / BIAS_FILE, timesteps=steps, values=values, discounted_returns=returns)
     np.savez(
         folder / DIAGNOSTICS_FILE,
         timesteps=steps,
@@ -167,7 +167,7 @@ def test_claims_by_hand(tmp_path):
     runs, _ = load_runs([tmp_path])
     by_variant = {v: [r for r in runs if r.variant == v] for v in ("serasac", "sera_nolr")}
     run = by_variant["serasac"][0]
-    assert claims.abs_bias(run) == pytest.approx(2.0)
+    assert claims.relative_bias(run) == pytest.approx(0.2)
     # Second half (steps >= 150): 4 / 2^2 = 1 and 9 / 6^2 = 0.25 -> 0.625
     assert claims.target_cv2(run) == pytest.approx(0.625)
     lines = claims.claims_table(by_variant, reps=500)

@@ -24,8 +24,9 @@ Every summary is computed per run first, then compared across runs: a critic's i
 - ``target_cv2``: the TD target's batch variance divided by its squared batch mean (a squared coefficient of
   variation: variance normalised by the targets' scale, so that a policy that earns more is not penalised for its
   larger values), averaged over the evaluations of the second half of training (Fig. 4c).
-- ``abs_bias``: the absolute initial-state bias ``|V(s0) - discounted return|``, averaged over the evaluations after
-  ``learning_starts`` (Fig. 4a).
+- ``relative_bias``: the initial-state bias ``|V(s0) - G|`` (``G`` the discounted return) relative to the returns'
+  scale, over the evaluations after ``learning_starts`` (Fig. 4a): values and their errors grow with what a policy
+  earns, so the raw bias would favour the policy that learns least.
 - ``auc``: the normalized area under the learning curve (Fig. 4b).
 
 Verdicts: *supported* when the interval lies wholly on the side the paper claims, *not supported* when it lies wholly
@@ -40,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from sb3_sera.experiments import stats
-from sb3_sera.experiments.evaluation import DIAGNOSTICS_FILE
+from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sb3_sera.experiments.runs import NPZ_ERRORS, RunResult
 
 #: Runs each side needs before an interval or a verdict is given
@@ -109,15 +110,25 @@ def target_cv2(run: RunResult) -> float | None:
     return float(np.mean(records["td_target_var"][late] / records["td_target_mean"][late] ** 2))
 
 
-def abs_bias(run: RunResult) -> float | None:
-    """``|initial-state bias|`` averaged over the evaluations after ``learning_starts``."""
-    if not run.initial_state_bias:
+def relative_bias(run: RunResult) -> float | None:
+    """
+    The initial-state bias relative to the returns' scale, over the evaluations after ``learning_starts``:
+    ``sum_t |mean V(s0) - mean G|`` over ``sum_t |mean G|`` (a policy that earns more has larger values and larger
+    errors in the same units; a ratio of sums stays defined where a return crosses zero).
+    """
+    path = Path(run.folder) / BIAS_FILE
+    if not path.exists():
         return None
-    steps = np.asarray(run.timesteps[: len(run.initial_state_bias)])
+    try:
+        with np.load(path) as records:
+            steps, values, returns = records["timesteps"], records["values"], records["discounted_returns"]
+    except NPZ_ERRORS:
+        return None
     after = steps > float(run.hyperparams.get("learning_starts", 0))
-    if not after.any():
+    scale = np.abs(returns[after].mean(axis=1)).sum()
+    if not after.any() or scale == 0:
         return None
-    return float(np.mean(np.abs(np.asarray(run.initial_state_bias)[after])))
+    return float(np.abs(values[after].mean(axis=1) - returns[after].mean(axis=1)).sum() / scale)
 
 
 def auc(run: RunResult) -> float | None:
@@ -184,8 +195,8 @@ CLAIMS = (
     Claim(
         "Fig. 4a",
         "SERA has the smallest initial-state bias",
-        "|V(s0) - discounted return|, after learning_starts",
-        abs_bias,
+        "sum |V(s0) - G| / sum |G| after learning_starts",
+        relative_bias,
         lower=True,
         baselines=("sac", "ensemble_mean", "sera_nolr", "masac", "matd3", "maddpg"),
     ),

@@ -630,7 +630,9 @@ def plot_correlation_matrices(groups: Sequence[RunGroup], path: Path, step: int 
     for row, (key, name) in enumerate(rows):
         # One colour scale per row, from its smallest off-diagonal entry to 1, so that differences show
         off_diagonal = [chosen[key][0][~np.eye(len(chosen[key][0]), dtype=bool)] for _, chosen in panels if key in chosen]
-        low = min(float(np.floor(min(values.min() for values in off_diagonal) * 20) / 20), 0.95)
+        smallest = float(min(values.min() for values in off_diagonal))
+        # From the smallest off-diagonal entry to 1 (to a thousandth for saturated rows), so that differences show
+        low = np.floor(smallest * 1000) / 1000 if smallest >= 0.99 else min(np.floor(smallest * 20) / 20, 0.95)
         image = None
         for column, (group, chosen) in enumerate(panels):
             ax = axes[row][column]
@@ -639,9 +641,11 @@ def plot_correlation_matrices(groups: Sequence[RunGroup], path: Path, step: int 
                 continue
             matrix, seed, at, n = chosen[key]
             image = ax.imshow(matrix, vmin=low, vmax=1.0, cmap="viridis")
+            # Near-saturated rows (all above 0.95) get three decimals, so that their differences show
+            decimals = 3 if low >= 0.95 else 2
             for (i, j), value in np.ndenumerate(matrix):
                 shade = "black" if value > low + 0.6 * (1.0 - low) else "white"
-                ax.text(j, i, f"{value:.2f}", ha="center", va="center", fontsize=7, color=shade)
+                ax.text(j, i, f"{value:.{decimals}f}", ha="center", va="center", fontsize=7, color=shade)
             labels = [f"Q{i}" for i in range(len(matrix))]
             ax.set_xticks(range(len(matrix)), labels, fontsize=7)
             ax.set_yticks(range(len(matrix)), labels, fontsize=7)

@@ -26,6 +26,7 @@ from sb3_sera.common.checks import (
     with_env_step_check,
 )
 from sb3_sera.common.naming import NamedRuns
+from sb3_sera.common.off_policy import record_means, start_train, target_update_due
 from sb3_sera.ctde.policies import fill_agent_layout, make_env_for_policy
 from sb3_sera.sera.aggregation import (
     ACTOR_AGGREGATIONS,
@@ -404,44 +405,74 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         return [rates[index] for index in range(self.critic.n_critics)]
 
     def train(self, gradient_steps: int, batch_size: int = 64) -> None:
-        # Switch to train mode (this affects batch norm / dropout)
-        self.policy.set_training_mode(True)
-        optimizers = [self.actor.optimizer]
-        if self.ent_coef_optimizer is not None:
-            optimizers.append(self.ent_coef_optimizer)
-        self._update_learning_rate(optimizers)
-        critic_rates = self._update_critic_learning_rates(None)
-        self.step_size.set_lr_max(self.critic_lr_max_schedule(self._current_progress_remaining))
+        """
+        ``gradient_steps`` steps of the paper's Algorithm 2, each on a replayed batch: the critic update (aggregated
+        target, online values, loss and step-size statistics), the disagreement-adjusted entropy target, a check that
+        nothing computed is non-finite (before any parameter changes), then the step size, the entropy coefficient,
+        the critics, the actor and the target critics in turn (SB3's SAC order).
+        """
+        critic_rates = self._start_train()
         if gradient_steps == 0:
             # Nothing to train (SB3's SAC accepts it too): no loss or diagnostic to log
             self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
             return
-
-        ent_coef_losses: list[th.Tensor] = []
-        ent_coefs: list[th.Tensor] = []
-        actor_losses: list[th.Tensor] = []
-        critic_losses: list[th.Tensor] = []
-
+        logged: dict[str, list[th.Tensor]] = {"ent_coef": [], "actor_loss": [], "critic_loss": []}
         for gradient_step in range(gradient_steps):
             replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
-            # For n-step replay, discount factor is gamma**n_steps (when no early termination)
-            discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
-
             if self.use_sde:
                 self.actor.reset_noise()
-
-            # Action by the current actor for the sampled state (drawn first, as in SAC, for equal random streams)
+            # The current actor's action at the replayed state (drawn first, as in SAC, for equal random streams)
             actions_pi, log_prob = self.actor.action_log_prob(replay_data.observations)
             log_prob = log_prob.reshape(-1, 1)
-            if self.ent_coef_optimizer is not None and self.log_ent_coef is not None:
-                ent_coef = th.exp(self.log_ent_coef.detach())
-            else:
-                ent_coef = self.ent_coef_tensor
+            ent_coef = self._entropy_coefficient()
+            critic = self._critic_step_values(replay_data, ent_coef)
+            target_entropy, ent_coef_loss = self._entropy_target(critic.current_q_values, log_prob)
+            self._check_step(gradient_step, ent_coef, critic, ent_coef_loss)
+            critic_rates = self._step_size_step(critic.step_size, critic_rates)
+            self._entropy_step(ent_coef_loss, logged)
+            logged["ent_coef"].append(ent_coef)
+            self._critic_step(critic.critic_loss, logged)
+            self._actor_step(gradient_step, replay_data.observations, actions_pi, log_prob, ent_coef, logged)
+            self._target_step(gradient_step)
+        self._n_updates += gradient_steps
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        record_means(self.logger, logged)
+        self._record_diagnostics(
+            critic.target_q_values,
+            critic.next_q_values,
+            critic.next_q_aggregate,
+            critic.current_q_values.detach(),
+            target_entropy,
+            critic.step_size,
+        )
+        for index, rate in enumerate(critic_rates):
+            self.logger.record(f"train/critic_lr_{index}", rate)
 
-            with th.no_grad():
-                # Target actions from the current actor
-                next_actions, next_log_prob = self.actor.action_log_prob(replay_data.next_observations)
-            next_q_values, next_q_aggregate, target_q_values, current_q_values, critic_loss, update = self._critic_update(
+    def _start_train(self) -> list[float]:
+        """Training mode, the actor's and entropy coefficient's schedules, the critics' rates; returns the latter."""
+        optimizers = [self.actor.optimizer]
+        if self.ent_coef_optimizer is not None:
+            optimizers.append(self.ent_coef_optimizer)
+        start_train(self, optimizers)
+        critic_rates = self._update_critic_learning_rates(None)
+        self.step_size.set_lr_max(self.critic_lr_max_schedule(self._current_progress_remaining))
+        return critic_rates
+
+    def _entropy_coefficient(self) -> th.Tensor:
+        """The entropy coefficient of this step (its value before the step's own update)."""
+        if self.ent_coef_optimizer is not None and self.log_ent_coef is not None:
+            return th.exp(self.log_ent_coef.detach())
+        return self.ent_coef_tensor
+
+    def _critic_step_values(self, replay_data: ReplayBufferSamples, ent_coef: th.Tensor) -> CriticUpdate:
+        """The critic update on a batch (Algorithm 2, lines 5-16), computed, nothing changed yet."""
+        # For n-step replay, the discount factor is gamma**n_steps (when no early termination)
+        discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
+        with th.no_grad():
+            # Target actions from the current actor
+            next_actions, next_log_prob = self.actor.action_log_prob(replay_data.next_observations)
+        return CriticUpdate(
+            *self._critic_update(
                 replay_data.observations,
                 replay_data.actions,
                 replay_data.next_observations,
@@ -452,78 +483,84 @@ class SERASAC(NamedRuns, Capabilities, SAC):
                 next_log_prob.reshape(-1, 1),
                 ent_coef,
             )
-
-            # Disagreement-adjusted entropy target H_eff = H_target - beta * U at the replay pairs
-            assert isinstance(self.target_entropy, float)
-            target_entropy: th.Tensor | float = self.target_entropy
-            if self.disagreement_coef > 0:
-                disagreement = ensemble_disagreement(current_q_values.detach()).unsqueeze(1)
-                target_entropy = self.target_entropy - self.disagreement_coef * disagreement
-            ent_coef_loss = None
-            if self.ent_coef_optimizer is not None and self.log_ent_coef is not None:
-                ent_coef_loss = -(self.log_ent_coef * (log_prob + target_entropy).detach()).mean()
-
-            # Nothing has changed yet: stop here if a value is not finite
-            # (ordered so that a cause is named before its consequences)
-            quantities = {"entropy coefficient": ent_coef, "TD target": target_q_values, "critic loss": critic_loss}
-            sentinel = critic_loss + ent_coef.sum()
-            if ent_coef_loss is not None:
-                quantities["entropy coefficient loss"] = ent_coef_loss
-                sentinel = sentinel + ent_coef_loss
-            if self.adaptive_critic_lr:
-                quantities["critic step size"] = update.learning_rates
-                sentinel = sentinel + update.learning_rates.sum()
-            self._check_finite(gradient_step, quantities, sentinel)
-
-            self.step_size.commit(update)
-            if self.adaptive_critic_lr:
-                critic_rates = self._update_critic_learning_rates(update)
-
-            # Optimize entropy coefficient, also called entropy temperature or alpha in the paper
-            if ent_coef_loss is not None and self.ent_coef_optimizer is not None:
-                self.ent_coef_optimizer.zero_grad()
-                ent_coef_loss.backward()
-                self.ent_coef_optimizer.step()
-                ent_coef_losses.append(ent_coef_loss.detach())
-            ent_coefs.append(ent_coef)
-
-            # Optimize the critics, each with the step size of its own parameter group
-            self.critic.optimizer.zero_grad()
-            critic_loss.backward()
-            self.critic.optimizer.step()
-            critic_losses.append(critic_loss.detach())
-
-            # Actor loss against the aggregated online critics
-            actor_loss = (ent_coef * log_prob - self._actor_q_value(replay_data.observations, actions_pi)).mean()
-            self._check_finite(gradient_step, {"actor loss": actor_loss}, actor_loss)
-            self.actor.optimizer.zero_grad()
-            # Gradients for the actor only: the critics' weight gradients would be computed and thrown away
-            actor_loss.backward(inputs=self._actor_parameters)
-            self.actor.optimizer.step()
-            actor_losses.append(actor_loss.detach())
-
-            # Update target networks every target_update_interval gradient steps, counted across train() calls
-            # (SB3's SAC restarts its count at each call, so with gradient_steps=1 it updates at every step)
-            if (self._n_updates + gradient_step) % self.target_update_interval == 0:
-                with th.no_grad():
-                    th._foreach_mul_(self._critic_target_parameters, 1.0 - self.tau)
-                    th._foreach_add_(self._critic_target_parameters, self._critic_parameters, alpha=self.tau)
-                # Copy running stats, see SB3 GH issue #996
-                polyak_update(self.batch_norm_stats, self.batch_norm_stats_target, 1.0)
-
-        self._n_updates += gradient_steps
-
-        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
-        self.logger.record("train/ent_coef", th.stack(ent_coefs).mean().item())
-        self.logger.record("train/actor_loss", th.stack(actor_losses).mean().item())
-        self.logger.record("train/critic_loss", th.stack(critic_losses).mean().item())
-        if len(ent_coef_losses) > 0:
-            self.logger.record("train/ent_coef_loss", th.stack(ent_coef_losses).mean().item())
-        self._record_diagnostics(
-            target_q_values, next_q_values, next_q_aggregate, current_q_values.detach(), target_entropy, update
         )
-        for index, rate in enumerate(critic_rates):
-            self.logger.record(f"train/critic_lr_{index}", rate)
+
+    def _entropy_target(self, current_q_values: th.Tensor, log_prob: th.Tensor) -> tuple[th.Tensor | float, th.Tensor | None]:
+        """
+        The disagreement-adjusted entropy target ``H_eff = H_target - beta * U`` at the replayed pairs, and the entropy
+        coefficient's loss (None for a fixed coefficient).
+        """
+        assert isinstance(self.target_entropy, float)
+        target_entropy: th.Tensor | float = self.target_entropy
+        if self.disagreement_coef > 0:
+            disagreement = ensemble_disagreement(current_q_values.detach()).unsqueeze(1)
+            target_entropy = self.target_entropy - self.disagreement_coef * disagreement
+        if self.ent_coef_optimizer is None or self.log_ent_coef is None:
+            return target_entropy, None
+        return target_entropy, -(self.log_ent_coef * (log_prob + target_entropy).detach()).mean()
+
+    def _check_step(
+        self, gradient_step: int, ent_coef: th.Tensor, critic: CriticUpdate, ent_coef_loss: th.Tensor | None
+    ) -> None:
+        """Nothing has changed yet: stop here if a value is not finite (a cause named before its consequences)."""
+        quantities = {"entropy coefficient": ent_coef, "TD target": critic.target_q_values, "critic loss": critic.critic_loss}
+        sentinel = critic.critic_loss + ent_coef.sum()
+        if ent_coef_loss is not None:
+            quantities["entropy coefficient loss"] = ent_coef_loss
+            sentinel = sentinel + ent_coef_loss
+        if self.adaptive_critic_lr:
+            quantities["critic step size"] = critic.step_size.learning_rates
+            sentinel = sentinel + critic.step_size.learning_rates.sum()
+        self._check_finite(gradient_step, quantities, sentinel)
+
+    def _step_size_step(self, update: StepSizeUpdate, critic_rates: list[float]) -> list[float]:
+        """Commit the step-size statistics; with the adaptive step size, set each critic's new rate and return them."""
+        self.step_size.commit(update)
+        return self._update_critic_learning_rates(update) if self.adaptive_critic_lr else critic_rates
+
+    def _entropy_step(self, ent_coef_loss: th.Tensor | None, logged: dict[str, list[th.Tensor]]) -> None:
+        """Optimize the entropy coefficient (the temperature, alpha in the paper) when it is learned."""
+        if ent_coef_loss is None or self.ent_coef_optimizer is None:
+            return
+        self.ent_coef_optimizer.zero_grad()
+        ent_coef_loss.backward()
+        self.ent_coef_optimizer.step()
+        logged.setdefault("ent_coef_loss", []).append(ent_coef_loss.detach())
+
+    def _critic_step(self, critic_loss: th.Tensor, logged: dict[str, list[th.Tensor]]) -> None:
+        """Optimize the critics, each with the step size of its own parameter group."""
+        self.critic.optimizer.zero_grad()
+        critic_loss.backward()
+        self.critic.optimizer.step()
+        logged["critic_loss"].append(critic_loss.detach())
+
+    def _actor_step(
+        self,
+        gradient_step: int,
+        observations: PyTorchObs,
+        actions_pi: th.Tensor,
+        log_prob: th.Tensor,
+        ent_coef: th.Tensor,
+        logged: dict[str, list[th.Tensor]],
+    ) -> None:
+        """Optimize the actor against the aggregated online critics (Algorithm 2, line 24)."""
+        actor_loss = (ent_coef * log_prob - self._actor_q_value(observations, actions_pi)).mean()
+        self._check_finite(gradient_step, {"actor loss": actor_loss}, actor_loss)
+        self.actor.optimizer.zero_grad()
+        # Gradients for the actor only: the critics' weight gradients would be computed and thrown away
+        actor_loss.backward(inputs=self._actor_parameters)
+        self.actor.optimizer.step()
+        logged["actor_loss"].append(actor_loss.detach())
+
+    def _target_step(self, gradient_step: int) -> None:
+        """Polyak-update the target critics when due (:func:`~sb3_sera.common.off_policy.target_update_due`)."""
+        if not target_update_due(self._n_updates, gradient_step, self.target_update_interval):
+            return
+        with th.no_grad():
+            th._foreach_mul_(self._critic_target_parameters, 1.0 - self.tau)
+            th._foreach_add_(self._critic_target_parameters, self._critic_parameters, alpha=self.tau)
+        # Copy running stats, see SB3 GH issue #996
+        polyak_update(self.batch_norm_stats, self.batch_norm_stats_target, 1.0)
 
     def _actor_q_value(self, observations: PyTorchObs, actions_pi: th.Tensor) -> th.Tensor:
         """

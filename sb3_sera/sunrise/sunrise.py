@@ -26,6 +26,7 @@ from sb3_sera.common.checks import (
     with_env_step_check,
 )
 from sb3_sera.common.naming import NamedRuns
+from sb3_sera.common.off_policy import record_means, start_train, target_update_due
 from sb3_sera.sunrise.buffers import SUNRISEReplayBuffer, SUNRISEReplayBufferSamples
 from sb3_sera.sunrise.ensemble import backup_weight, ensemble_std, masked_mean, weighted_bellman_loss
 from sb3_sera.sunrise.policies import (
@@ -261,11 +262,10 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
             self._episode_members[ended] = np.random.randint(self.n_members, size=len(ended))
 
     def train(self, gradient_steps: int, batch_size: int = 64) -> None:
-        self.policy.set_training_mode(True)
         optimizers = [self.actor.optimizer, self.critic.optimizer]
         if self.ent_coef_optimizer is not None:
             optimizers.append(self.ent_coef_optimizer)
-        self._update_learning_rate(optimizers)
+        start_train(self, optimizers)
         if gradient_steps == 0:
             self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
             return
@@ -277,14 +277,12 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
             step_values = self._gradient_step(replay_data, gradient_step)
             for key, value in step_values.items():
                 logged.setdefault(key, []).append(value)
-            if (self._n_updates + gradient_step) % self.target_update_interval == 0:
+            if target_update_due(self._n_updates, gradient_step, self.target_update_interval):
                 polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
 
         self._n_updates += gradient_steps
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
-        means = th.stack([th.stack(values).mean() for values in logged.values()]).tolist()
-        for key, value in zip(logged, means, strict=True):
-            self.logger.record(f"train/{key}", value)
+        record_means(self.logger, logged)
 
     def _gradient_step(self, replay_data: SUNRISEReplayBufferSamples, gradient_step: int = 0) -> dict[str, th.Tensor]:
         """
