@@ -213,3 +213,23 @@ def test_evaluation_episodes_give_the_monte_carlo_errors(algo, tmp_path):
     expected = th.cat(q_values, dim=1).numpy()[0] - np.mean([2.75, 3.5, 3.0])
     np.testing.assert_allclose(records["mc_error_mean"][-1], expected, rtol=1e-5)
     assert {"td_target_mean", "critic_cov_matrix", "td_error_cov_matrix"} <= set(records.files)
+
+
+def test_serasac_td_targets_by_hand():
+    # y = r + gamma (1 - d) (SERA aggregate of the target critics at a' ~ pi(s') - alpha log pi(a'|s'))
+    from sb3_sera.sera.aggregation import aggregate_target
+
+    model = SERASAC("MlpPolicy", "Pendulum-v1", learning_starts=10, batch_size=16, seed=0).learn(60)
+    batch = model.replay_buffer.sample(32)
+    th.manual_seed(5)
+    targets, values = model.td_targets(batch)
+    th.manual_seed(5)
+    with th.no_grad():
+        next_actions, next_log_prob = model.actor.action_log_prob(batch.next_observations)
+        aggregate = aggregate_target(model.critic_target.q_values(batch.next_observations, next_actions), "sera").unsqueeze(1)
+        expected = batch.rewards + (1 - batch.dones) * model.gamma * (
+            aggregate - th.exp(model.log_ent_coef) * next_log_prob.reshape(-1, 1)
+        )
+        np.testing.assert_allclose(targets.numpy(), expected.numpy(), rtol=1e-6)
+        np.testing.assert_allclose(values.numpy(), model.critic.q_values(batch.observations, batch.actions).numpy())
+    assert values.shape == (32, 5) and not values.requires_grad

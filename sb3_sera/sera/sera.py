@@ -382,21 +382,8 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         actions drawn from the actor) and the online critics' values: shapes ``(S, 1)`` and ``(S, K)``. Changes
         nothing (the step-size statistics are computed, not committed); draws the next actions from torch's generator.
         """
-        discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
         with th.no_grad():
-            ent_coef = th.exp(self.log_ent_coef) if self.log_ent_coef is not None else self.ent_coef_tensor
-            next_actions, next_log_prob = self.actor.action_log_prob(replay_data.next_observations)
-            update = self._critic_update_eager(
-                replay_data.observations,
-                replay_data.actions,
-                replay_data.next_observations,
-                replay_data.rewards,
-                replay_data.dones,
-                discounts,
-                next_actions,
-                next_log_prob.reshape(-1, 1),
-                ent_coef,
-            )
+            update = self._critic_step_values(replay_data, self._entropy_coefficient(), eager=True)
         return update.target_q_values, update.current_q_values
 
     def critic_learning_rates(self) -> list[float]:
@@ -464,15 +451,19 @@ class SERASAC(NamedRuns, Capabilities, SAC):
             return th.exp(self.log_ent_coef.detach())
         return self.ent_coef_tensor
 
-    def _critic_step_values(self, replay_data: ReplayBufferSamples, ent_coef: th.Tensor) -> CriticUpdate:
-        """The critic update on a batch (Algorithm 2, lines 5-16), computed, nothing changed yet."""
+    def _critic_step_values(self, replay_data: ReplayBufferSamples, ent_coef: th.Tensor, eager: bool = False) -> CriticUpdate:
+        """
+        The critic update on a batch (Algorithm 2, lines 5-16), computed, nothing changed yet (``eager``: without
+        ``compile_update``'s compiled function).
+        """
         # For n-step replay, the discount factor is gamma**n_steps (when no early termination)
         discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
         with th.no_grad():
             # Target actions from the current actor
             next_actions, next_log_prob = self.actor.action_log_prob(replay_data.next_observations)
+        critic_update = self._critic_update_eager if eager else self._critic_update
         return CriticUpdate(
-            *self._critic_update(
+            *critic_update(
                 replay_data.observations,
                 replay_data.actions,
                 replay_data.next_observations,
