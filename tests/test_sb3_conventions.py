@@ -1,4 +1,4 @@
-"""SERASAC where SB3's own tests, an audit and new users found it differing from an SB3 algorithm (issue 10)."""
+"""The package's algorithms as SB3 algorithms: the conventions SB3's own tests, an audit and new users checked."""
 
 import copy
 import inspect
