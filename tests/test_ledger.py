@@ -168,8 +168,8 @@ def test_claims_by_hand(tmp_path):
     by_variant = {v: [r for r in runs if r.variant == v] for v in ("serasac", "sera_nolr")}
     run = by_variant["serasac"][0]
     assert claims.relative_bias(run) == pytest.approx(0.2)
-    # Second half (steps >= 150): 4 / 2^2 = 1 and 9 / 6^2 = 0.25 -> 0.625
-    assert claims.target_cv2(run) == pytest.approx(0.625)
+    # Second half (steps >= 150): variances 4 and 9 over mean squares 4 + 2^2 and 9 + 6^2 -> (0.5 + 0.2) / 2 = 0.35
+    assert claims.target_relative_variance(run) == pytest.approx(0.35)
     lines = claims.claims_table(by_variant, reps=500)
     mc_row = next(line for line in lines if "mc_error_corr" in line)
     # SERA 0.3 against 0.7: -0.4; every resample of SERA lies in [0.2, 0.4] and of NoLR in [0.6, 0.8]

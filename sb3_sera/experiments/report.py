@@ -465,8 +465,8 @@ def plot_curves(
 
 def load_diagnostics(run: RunResult) -> dict[str, np.ndarray] | None:
     """
-    A run's critic diagnostics (``critic_diagnostics.npz``, SAC family), or None; with ``td_target_cv2``, the TD
-    target's variance over its squared mean, where the run recorded the mean.
+    A run's critic diagnostics (``critic_diagnostics.npz``, SAC family), or None; with ``td_target_relative_var``,
+    the TD target's variance over its mean square, where the run recorded the mean.
     """
     path = Path(run.folder) / DIAGNOSTICS_FILE
     if not path.exists():
@@ -477,14 +477,15 @@ def load_diagnostics(run: RunResult) -> dict[str, np.ndarray] | None:
     except NPZ_ERRORS:
         return None  # a damaged diagnostics record draws nothing; the run's returns are still reported
     if "td_target_mean" in diagnostics:
-        diagnostics["td_target_cv2"] = diagnostics["td_target_var"] / diagnostics["td_target_mean"] ** 2
+        variance, mean = diagnostics["td_target_var"], diagnostics["td_target_mean"]
+        diagnostics["td_target_relative_var"] = variance / (variance + mean**2)
     return diagnostics
 
 
 #: The diagnostics figure's panels: record key, title, y label
 DIAGNOSTIC_PANELS = (
     ("td_target_var", "TD-target variance", "Var_batch(y) (return units²)"),
-    ("td_target_cv2", "normalised TD-target variance (Fig. 4c)", "Var_batch(y) / mean_batch(y)²"),
+    ("td_target_relative_var", "normalised TD-target variance (Fig. 4c)", "Var_batch(y) / mean_batch(y²)"),
     ("critic_lr", "critic learning rate (adaptive: per critic)", "learning rate (mean over critics; dotted: min, max)"),
     ("critic_corr", "critics' value correlation", "mean off-diagonal Pearson r of Q_i"),
     ("td_error_corr", "critics' TD-error correlation", "mean off-diagonal Pearson r of δ_i"),
@@ -536,7 +537,7 @@ def plot_diagnostics(groups: Sequence[RunGroup], path: Path, colors: dict[str, A
         ax.set_title(title, fontsize=10)
         ax.set_xlabel("environment steps")
         ax.set_ylabel(ylabel)
-        if key in ("td_target_var", "td_target_cv2"):
+        if key in ("td_target_var", "td_target_relative_var"):
             ax.set_yscale("log")
         if ax.lines:
             ax.legend(fontsize="x-small")
