@@ -560,16 +560,20 @@ def plot_auc_bars(groups: Sequence[RunGroup], path: Path, colors: dict[str, Any]
     for index, group in enumerate(groups):
         aucs = group.aucs
         point, low, high = (value[0] for value in stats.iqm_interval(aucs[:, None], reps))
+        # No interval below MIN_RUNS runs, as in the tables
+        error = [[point - low], [high - point]] if len(aucs) >= MIN_RUNS else None
         ax.errorbar(
-            index, point, yerr=[[point - low], [high - point]], color=colors[group.variant], marker="s", markersize=9,
-            capsize=6, linewidth=2,
+            index, point, yerr=error, color=colors[group.variant], marker="s", markersize=9, capsize=6, linewidth=2,
         )  # fmt: skip
         ax.scatter(np.full(len(aucs), index + 0.15), aucs, color="black", s=12, zorder=3)
     ax.set_xticks(range(len(groups)), [f"{g.label}\n(n={len(g.runs)})" for g in groups], fontsize=8)
     ax.set_xlim(-0.6, len(groups) - 0.4)
     ax.set_ylabel("normalized AUC (average evaluation return)")
     ax.grid(axis="y", alpha=0.3)
-    ax.set_title("Normalized AUC (Fig. 4b)\nsquare: IQM over runs, bar: 95% stratified-bootstrap CI, dots: runs", fontsize=9)
+    ax.set_title(
+        f"Normalized AUC (Fig. 4b)\nsquare: IQM over runs, bar: 95% stratified-bootstrap CI (n >= {MIN_RUNS}), dots: runs",
+        fontsize=9,
+    )
     _save(fig, path)
 
 
