@@ -14,6 +14,7 @@ the torch threads and device the run had). A run whose
 records match a finished run's is not run again; an interrupted one runs again in its own folder.
 """
 
+import contextlib
 import copy
 import json
 import math
@@ -662,8 +663,11 @@ def _worker_init(parent: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if sys.platform.startswith("linux"):
         import ctypes
+        import ctypes.util
 
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+        # A C library without prctl leaves it to the thread below to end the worker
+        with contextlib.suppress(OSError, AttributeError):
+            ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
     if os.getppid() != parent:
         os._exit(1)  # the parent died before the death signal was set
 
