@@ -51,22 +51,30 @@ MIN_RUNS = 3
 SERA = "serasac"
 
 
-def _diagnostics(run: RunResult) -> dict[str, np.ndarray] | None:
+def load_diagnostics(run: RunResult) -> dict[str, np.ndarray] | None:
+    """
+    A run's critic diagnostics (``critic_diagnostics.npz``, SAC family), or None (no record, or a damaged one); with
+    ``td_target_relative_var``, the TD target's variance over its mean square, where the run recorded the mean.
+    """
     path = Path(run.folder) / DIAGNOSTICS_FILE
     if not path.exists():
         return None
     try:
         with np.load(path) as records:
-            return {key: records[key] for key in records.files}
+            diagnostics = {key: records[key] for key in records.files}
     except NPZ_ERRORS:
         return None
+    if "td_target_mean" in diagnostics:
+        variance, mean = diagnostics["td_target_var"], diagnostics["td_target_mean"]
+        diagnostics["td_target_relative_var"] = variance / (variance + mean**2)
+    return diagnostics
 
 
 def last_diagnostic(key: str) -> Callable[[RunResult], float | None]:
     """A summary: the diagnostic ``key`` at the run's last evaluation (None where the run did not record it)."""
 
     def summary(run: RunResult) -> float | None:
-        records = _diagnostics(run)
+        records = load_diagnostics(run)
         if records is None or key not in records or not np.isfinite(records[key][-1]):
             return None
         return float(records[key][-1])
@@ -75,7 +83,7 @@ def last_diagnostic(key: str) -> Callable[[RunResult], float | None]:
 
 
 def _last_matrix(run: RunResult, key: str) -> np.ndarray | None:
-    records = _diagnostics(run)
+    records = load_diagnostics(run)
     if records is None or key not in records or not np.isfinite(records[key][-1]).all():
         return None
     return np.asarray(records[key][-1], dtype=float)
@@ -104,12 +112,11 @@ def closest_pair(run: RunResult) -> float | None:
 
 def target_relative_variance(run: RunResult) -> float | None:
     """The TD target's ``Var(y) / mean(y^2)`` averaged over the evaluations of the second half of training."""
-    records = _diagnostics(run)
-    if records is None or "td_target_mean" not in records:
+    records = load_diagnostics(run)
+    if records is None or "td_target_relative_var" not in records:
         return None
     late = records["timesteps"] >= run.n_timesteps / 2
-    variance, mean = records["td_target_var"][late], records["td_target_mean"][late]
-    return float(np.mean(variance / (variance + mean**2)))
+    return float(np.mean(records["td_target_relative_var"][late]))
 
 
 def relative_bias(run: RunResult) -> float | None:

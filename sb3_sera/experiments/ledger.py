@@ -25,7 +25,7 @@ from typing import Any
 import yaml
 
 from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
-from sb3_sera.experiments.report import Skipped, group_runs, load_runs, section_table, write_report
+from sb3_sera.experiments.report import Skipped, group_runs, load_runs, run_folders, section_table, write_report
 from sb3_sera.experiments.runs import RESULT_FILE, RunResult, env_name, read_record, run_ids
 
 #: The ledger's folder, at the top of the repository
@@ -106,11 +106,14 @@ def add_runs(sources: Sequence[str | Path], ledger: str | Path = LEDGER_DIR) -> 
     """
     ledger = Path(ledger)
     outcome = AddOutcome()
-    known = {run_identity(folder) for folder in _run_folders(ledger)}
+    known = {run_identity(folder) for folder in run_folders(ledger) if any(folder.glob("*/args.yml"))}
     for source in sources:
         if not Path(source).is_dir():
             raise FileNotFoundError(f"{source}: no such folder")
-        for folder in _run_folders(Path(source)):
+        for folder in run_folders(Path(source)):
+            if not any(folder.glob("*/args.yml")):
+                outcome.refused.append(Skipped(str(folder), "no <env_name>/args.yml record: its settings are unknown"))
+                continue
             records = next(folder.glob("*/args.yml")).parent
             args, config = read_record(records / "args.yml"), read_record(records / "config.yml")
             reason = _refusal(folder, args, config)
@@ -134,11 +137,6 @@ def add_runs(sources: Sequence[str | Path], ledger: str | Path = LEDGER_DIR) -> 
             known.add(identity)
             outcome.added.append(target)
     return outcome
-
-
-def _run_folders(root: Path) -> list[Path]:
-    """Folders ``<root>/<variant>/<env_name>_<id>/`` holding a ``<env_name>/args.yml`` record."""
-    return sorted(folder for folder in root.glob("*/*") if folder.is_dir() and any(folder.glob("*/args.yml")))
 
 
 def _sections(runs: Sequence[RunResult]) -> dict[tuple[str, int], list[Any]]:

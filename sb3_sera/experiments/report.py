@@ -27,9 +27,8 @@ import yaml
 from numpy.typing import ArrayLike
 
 from sb3_sera.experiments import stats
-from sb3_sera.experiments.claims import claims_section
-from sb3_sera.experiments.evaluation import DIAGNOSTICS_FILE
-from sb3_sera.experiments.runs import NPZ_ERRORS, RESULT_FILE, RunResult, env_name, load_result, read_record
+from sb3_sera.experiments.claims import claims_section, load_diagnostics
+from sb3_sera.experiments.runs import RESULT_FILE, RunResult, env_name, load_result, read_record
 
 #: Paper Table 1 (multi-agent, 300K steps) and Table 2 (single-agent): (mean, std) of the team return
 PAPER_RESULTS: dict[str, dict[str, tuple[float, float]]] = {
@@ -461,25 +460,6 @@ def plot_curves(
     ax.legend(fontsize="small")
     _save(fig, path)
     return notes
-
-
-def load_diagnostics(run: RunResult) -> dict[str, np.ndarray] | None:
-    """
-    A run's critic diagnostics (``critic_diagnostics.npz``, SAC family), or None; with ``td_target_relative_var``,
-    the TD target's variance over its mean square, where the run recorded the mean.
-    """
-    path = Path(run.folder) / DIAGNOSTICS_FILE
-    if not path.exists():
-        return None
-    try:
-        with np.load(path) as records:
-            diagnostics = {key: records[key] for key in records.files}
-    except NPZ_ERRORS:
-        return None  # a damaged diagnostics record draws nothing; the run's returns are still reported
-    if "td_target_mean" in diagnostics:
-        variance, mean = diagnostics["td_target_var"], diagnostics["td_target_mean"]
-        diagnostics["td_target_relative_var"] = variance / (variance + mean**2)
-    return diagnostics
 
 
 #: The diagnostics figure's panels: record key, title, y label
