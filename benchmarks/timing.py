@@ -4,20 +4,24 @@ import time
 from collections.abc import Mapping
 
 import numpy as np
+import torch as th
 from stable_baselines3.common.base_class import BaseAlgorithm
 
 
 def time_block(model: BaseAlgorithm, mode: str, block_steps: int, batch_size: int | None) -> float:
     """
     Gradient steps per second of one block: ``train`` (gradient steps only, at ``batch_size``, or the model's own
-    when None) or ``learn`` (env steps too).
+    when None) or ``learn`` (env steps too). On a GPU the clock stops once the device has finished the block.
     """
+    synchronize = th.cuda.synchronize if model.device.type == "cuda" else lambda: None
+    synchronize()
     start = time.perf_counter()
     if mode == "train":
         size = model.batch_size if batch_size is None else batch_size  # type: ignore[attr-defined]
         model.train(gradient_steps=block_steps, batch_size=size)  # type: ignore[attr-defined]
     else:
         model.learn(block_steps, reset_num_timesteps=False)
+    synchronize()
     return block_steps / (time.perf_counter() - start)
 
 

@@ -7,15 +7,20 @@ Both models are built with their defaults on the same task, their replay buffers
 - ``train``: ``model.train(block, batch_size)`` only (the gradient step);
 - ``learn``: ``model.learn(block)``, environment steps and one gradient step per environment step (SB3 defaults).
 
-With ``--compile``, a third model, SERASAC with ``compile_update=True`` (the opt-in path), joins the interleave.
+With ``--compile``, a third model, SERASAC with its whole gradient step compiled (``compile_update=True``, or
+``"reduce-overhead"``, replayed as a CUDA graph, with ``--cuda-graphs``), joins the interleave, and the script prints
+how many graphs and graph breaks Dynamo finds in that step (one graph, no break, when it compiles whole).
+``--device cuda`` runs all three on a GPU.
 
 Each figure is the median over blocks, with the interquartile range; the ratio is SAC's median rate over
 SERASAC's (the wall-time cost of SERASAC per gradient step, in units of SAC's).
 
     python benchmarks/train_speed.py --env HalfCheetah-v5 --blocks 15 --block-steps 100
+    python benchmarks/train_speed.py --compile --device cuda --cuda-graphs
 """
 
 import argparse
+from typing import Any
 
 import torch as th
 from stable_baselines3 import SAC
@@ -23,19 +28,41 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from timing import interleaved_rates, median_iqr
 
 from sb3_sera import SERASAC
+from sb3_sera.common.compiled import CompileMode, count_graph_breaks
 
 
-def _build(name: str, env_id: str, seed: int, learning_starts: int, batch_size: int) -> BaseAlgorithm:
+def _build(
+    name: str, env_id: str, *, seed: int, learning_starts: int, batch_size: int, device: str, compile_mode: CompileMode
+) -> BaseAlgorithm:
+    common: dict[str, Any] = dict(seed=seed, learning_starts=learning_starts, device=device)
     if name == "SAC":
-        model: BaseAlgorithm = SAC("MlpPolicy", env_id, seed=seed, learning_starts=learning_starts)
+        model: BaseAlgorithm = SAC("MlpPolicy", env_id, **common)
     else:
-        compile_update = name == "SERASAC+compile"
-        model = SERASAC("MlpPolicy", env_id, seed=seed, learning_starts=learning_starts, compile_update=compile_update)
+        compile_update = compile_mode if name == "SERASAC+compile" else False
+        model = SERASAC("MlpPolicy", env_id, compile_update=compile_update, **common)
     # Fill the replay buffer with random transitions (no gradient step before learning_starts), then take a few
     # untimed gradient steps (compilation happens here)
     model.learn(learning_starts)
     model.train(gradient_steps=3, batch_size=batch_size)  # type: ignore[attr-defined]
     return model
+
+
+def _graphs(model: SERASAC, batch_size: int) -> tuple[int, int]:
+    """Graphs and graph breaks of the model's gradient step, traced on a replayed batch without changing the model."""
+    batch = model.replay_buffer.sample(batch_size)  # type: ignore[union-attr]
+    return count_graph_breaks(
+        model._gradient_step,
+        batch.observations,
+        batch.actions,
+        batch.next_observations,
+        batch.rewards,
+        batch.dones,
+        model.gamma,
+        learning_rates=th.full((3,), 3e-4, device=model.device),
+        target_update=th.tensor(True, device=model.device),
+        healthy=th.tensor(False, device=model.device),  # masks every update: the trace changes nothing
+        states=[plan.state() for plan in model._adam_plans],
+    )
 
 
 def main() -> None:
@@ -49,13 +76,31 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=th.get_num_threads(), help="torch threads (default: torch's)")
     parser.add_argument("--modes", nargs="+", default=["train", "learn"], choices=["train", "learn"])
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--compile", action="store_true", help="also time SERASAC with compile_update=True")
+    parser.add_argument("--compile", action="store_true", help="also time SERASAC with its gradient step compiled")
+    parser.add_argument("--cuda-graphs", action="store_true", help="with --compile: compile_update='reduce-overhead'")
+    parser.add_argument("--device", default="cpu", help="torch device of all models, e.g. cuda")
     args = parser.parse_args()
 
     th.set_num_threads(args.threads)
     names = ["SAC", "SERASAC", *(["SERASAC+compile"] if args.compile else [])]
-    models = {name: _build(name, args.env, args.seed, args.learning_starts, args.batch_size) for name in names}
-    print(f"{args.env}, batch {args.batch_size}, {args.threads} torch thread(s), torch {th.__version__}")
+    compile_mode: CompileMode = "reduce-overhead" if args.cuda_graphs else True
+    models = {
+        name: _build(
+            name,
+            args.env,
+            seed=args.seed,
+            learning_starts=args.learning_starts,
+            batch_size=args.batch_size,
+            device=args.device,
+            compile_mode=compile_mode,
+        )
+        for name in names
+    }
+    device = th.cuda.get_device_name() if args.device.startswith("cuda") else "CPU"
+    print(f"{args.env}, batch {args.batch_size}, {args.threads} torch thread(s), torch {th.__version__}, {device}")
+    if args.compile:
+        graphs, breaks = _graphs(models["SERASAC+compile"], args.batch_size)  # type: ignore[arg-type]
+        print(f"compiled SERASAC step (compile_update={compile_mode!r}): {graphs} graph(s), {breaks} graph break(s)")
     print(f"{'mode':<6} {'algorithm':<15} {'steps/s (median)':>17} {'IQR':>15}  ratio (SAC rate / rate)")
     for mode in args.modes:
         rates = interleaved_rates(models, mode, args.blocks, args.block_steps, args.batch_size, args.warmup_blocks)

@@ -124,19 +124,6 @@ def test_critic_lr_max_accepts_a_schedule(tmp_path):
     assert float(loaded.step_size.lr_max) == pytest.approx(schedule(loaded._current_progress_remaining), rel=1e-6)
 
 
-def test_compiled_update_follows_the_critic_lr_max_schedule():
-    # The rate at full gain is a buffer the compiled update reads: a new value needs no recompilation
-    model = SERASAC("MlpPolicy", ENV_ID, seed=0, critic_lr_max=lambda progress: 1e-3 * progress, compile_update=True, **SMALL)
-    model.learn(SMALL["learning_starts"])
-    for progress in (1.0, 0.5):
-        model._current_progress_remaining = progress
-        model.train(gradient_steps=1, batch_size=32)
-        kappa = model.logger.name_to_value["train/kappa_0"]
-        assert model.logger.name_to_value["train/critic_lr_0"] == pytest.approx(
-            1e-3 * progress * (0.2 + 0.8 * kappa), rel=1e-5
-        )
-
-
 def sac_configuration(env, optimizer_kwargs=None) -> SERASAC:
     policy_kwargs = dict(n_critics=2, net_arch=[256, 256])
     if optimizer_kwargs is not None:

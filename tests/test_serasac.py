@@ -11,7 +11,6 @@ from gymnasium import spaces
 from stable_baselines3 import SAC
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
-from stable_baselines3.common.utils import set_random_seed
 
 from sb3_sera import SERASAC
 from sb3_sera.sera.policies import CRITIC_ARCHS
@@ -243,34 +242,6 @@ def test_deterministic_training():
         return snapshot(SERASAC("MlpPolicy", ENV_ID, seed=3, **SMALL).learn(150))
 
     assert_same_state(run(), run())
-
-
-def test_compiled_update_matches_default_path(tmp_path):
-    # The same model trained with and without compile_update, from the same random state, stays equal up to float
-    # rounding (torch.compile reorders float operations)
-    models = [
-        SERASAC("MlpPolicy", "Pendulum-v1", seed=0, learning_starts=100, batch_size=64, compile_update=flag)
-        for flag in (False, True)
-    ]
-    losses = []
-    for model in models:
-        model.learn(100)
-        set_random_seed(1)
-        model.train(gradient_steps=5, batch_size=64)
-        losses.append([model.logger.name_to_value[key] for key in ("train/critic_loss", "train/actor_loss")])
-    default, compiled = models
-    assert compiled._critic_update is not compiled._critic_update_eager  # really the compiled function
-    np.testing.assert_allclose(losses[0], losses[1], rtol=1e-5)
-    compiled_state = compiled.policy.state_dict()
-    for name, value in default.policy.state_dict().items():
-        np.testing.assert_allclose(value, compiled_state[name], atol=1e-6, err_msg=name)
-    np.testing.assert_allclose(default.step_size.estimation_var, compiled.step_size.estimation_var, rtol=1e-5)
-    # The flag is saved; the loaded model compiles again and goes on training
-    compiled.save(tmp_path / "compiled")
-    loaded = SERASAC.load(tmp_path / "compiled", env=make_vec_env("Pendulum-v1"))
-    assert loaded.compile_update and loaded._critic_update is not loaded._critic_update_eager
-    loaded.learn(10, reset_num_timesteps=False)
-    assert loaded._n_updates == compiled._n_updates + 10
 
 
 def test_multi_env_progress_bar_and_evaluation():

@@ -16,6 +16,7 @@ from stable_baselines3.sac import SAC
 from sb3_sera.common.arguments import checks_keywords
 from sb3_sera.common.capabilities import Capabilities
 from sb3_sera.common.checks import (
+    NON_FINITE_ADVICE,
     check_choice,
     check_ent_coef,
     check_finite,
@@ -24,6 +25,15 @@ from sb3_sera.common.checks import (
     check_range,
     gradient_step_context,
     with_env_step_check,
+)
+from sb3_sera.common.compiled import (
+    COMPILE_MODES,
+    AdamPlan,
+    CompileMode,
+    all_finite,
+    compile_step,
+    masked_adam,
+    masked_polyak,
 )
 from sb3_sera.common.naming import NamedRuns
 from sb3_sera.common.off_policy import record_means, start_train, target_update_due
@@ -66,6 +76,37 @@ class CriticUpdate(NamedTuple):
     critic_loss: th.Tensor
     #: Step-size statistics and rates, not yet committed
     step_size: StepSizeUpdate
+
+
+#: What a compiled gradient step checks, in the order in which a cause precedes its consequences
+COMPILED_QUANTITIES = (
+    "entropy coefficient",
+    "TD target",
+    "critic loss",
+    "entropy coefficient loss",
+    "critic step size",
+    "critic gradients",
+    "entropy coefficient gradient",
+    "actor loss",
+    "actor gradients",
+)
+
+
+class CompiledStepOutput(NamedTuple):
+    """What one compiled gradient step gives back: tensors only, nothing read from the device during the step."""
+
+    #: Whether this step and every earlier one of the ``train()`` call had only finite values (their updates applied)
+    healthy: th.Tensor
+    #: One flag per quantity of :data:`COMPILED_QUANTITIES`: whether it was finite
+    finite: th.Tensor
+    #: The step's entropy coefficient, critic loss, actor loss and, when it is learned, entropy coefficient loss
+    logged: th.Tensor
+    #: Each critic's learning rate after the step, ``(K,)``
+    critic_rates: th.Tensor
+    #: The critic update, detached (the last step's feeds the diagnostics)
+    critic: CriticUpdate
+    #: The entropy target of the step (``(S, 1)`` with a disagreement adjustment)
+    target_entropy: th.Tensor
 
 
 class SERASAC(NamedRuns, Capabilities, SAC):
@@ -130,10 +171,14 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         and for a features extractor owned by the critics; None: ``learning_rate``
     :param disagreement_coef: ``beta >= 0`` of the disagreement-adjusted entropy target
         ``H_eff = H_target - beta * U`` (0: SAC's temperature tuning)
-    :param compile_update: run the critic update's tensor code (target critics, aggregation, online critics, TD
-        loss and its backward, step-size statistics) through ``torch.compile``: the same results as the default
-        path up to float rounding, somewhat faster per gradient step once compiled; the first gradient step pays
-        the compilation (tens of seconds), and on CPU it needs a C++ compiler
+    :param compile_update: compile the whole gradient step (critic update, step-size statistics, entropy target and
+        coefficient, actor update, optimizer steps, target update) into one graph with ``torch.compile``
+        (``fullgraph=True``): the same results as the default path up to float rounding, and nothing read back from
+        the device inside the step. A non-finite value still stops training with a ``FloatingPointError`` naming it
+        (read once per ``train()`` call), and the step that met it and the steps after it change nothing (their
+        updates are masked). ``"reduce-overhead"`` also replays the step as a CUDA graph (``device="cuda"``). The
+        first gradient step pays the compilation (about a minute on CPU, where it needs a C++ compiler); the
+        optimizers must be Adam or AdamW (the default)
     :param tensorboard_log: the log location for tensorboard (if None, no logging)
     :param policy_kwargs: additional arguments to be passed to the policy on creation, e.g. ``n_critics`` and
         ``critic_archs`` (see :class:`~sb3_sera.sera.policies.SERAPolicy`)
@@ -193,7 +238,7 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         estimation_variance_ema: float = 0.9,
         critic_learning_rate: float | Schedule | None = None,
         disagreement_coef: float = 0.01,
-        compile_update: bool = False,
+        compile_update: CompileMode = False,
         tensorboard_log: str | None = None,
         policy_kwargs: dict[str, Any] | None = None,
         verbose: int = 0,
@@ -270,7 +315,7 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         check_choice("sera_temperature_mode", self.sera_temperature_mode, TEMPERATURE_MODES)
         check_choice("sera_include_median", self.sera_include_median, (True, False))
         check_choice("adaptive_critic_lr", self.adaptive_critic_lr, (True, False))
-        check_choice("compile_update", self.compile_update, (True, False))
+        check_choice("compile_update", self.compile_update, COMPILE_MODES)
         self.sera_alpha = check_range("sera_alpha", self.sera_alpha, 0.0, 1.0)
         self.sera_temperature = check_range("sera_temperature", self.sera_temperature, 0.0, None, low_inclusive=False)
         self.kappa_min = check_range("kappa_min", self.kappa_min, 0.0, 1.0)
@@ -307,21 +352,29 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         self._actor_parameters: list[th.Tensor] = list(self.actor.parameters())
         self._critic_parameters: list[th.Tensor] = list(self.critic.parameters())
         self._critic_target_parameters: list[th.Tensor] = list(self.critic_target.parameters())
-        self._critic_update: Callable[..., CriticUpdate] = self._critic_update_eager
+        self._compiled_step: Callable[..., CompiledStepOutput] | None = None
         if self.compile_update:
-            # fallback_random: random ops (none today) would draw from torch's generator as in eager mode
-            self._critic_update = th.compile(self._critic_update_eager, dynamic=False, options={"fallback_random": True})
+            if self.compile_update == "reduce-overhead" and self.device.type != "cuda":
+                raise ValueError(
+                    f"compile_update='reduce-overhead' replays the gradient step as a CUDA graph and needs "
+                    f"device='cuda', got device={self.device.type!r}: use compile_update=True"
+                )
+            self._adam_plans = [AdamPlan(self.actor.optimizer, "actor"), AdamPlan(self.critic.optimizer, "critic")]
+            if self.ent_coef_optimizer is not None:
+                self._adam_plans.append(AdamPlan(self.ent_coef_optimizer, "entropy coefficient"))
+            self._compiled_step = compile_step(self._gradient_step, self.compile_update)
 
-    def _update_critic_learning_rates(self, update: StepSizeUpdate | None) -> list[float]:
+    def _update_critic_learning_rates(self, rates: list[float] | None) -> list[float]:
         """
         Set the critic optimizer's step sizes: the critic schedule for every group, then, with the adaptive
-        step size, each critic's own rate. Runs after SB3's ``_update_learning_rate``, which would set one value.
+        step size, each critic's own rate (``rates``). Runs after SB3's ``_update_learning_rate``, which would set
+        one value.
 
         :return: the learning rate of each critic
         """
         groups = self.critic.optimizer.param_groups
         scheduled = self.critic_lr_schedule(self._current_progress_remaining)
-        rates = update.learning_rates.tolist() if update is not None else [scheduled] * self.critic.n_critics
+        rates = rates if rates is not None else [scheduled] * self.critic.n_critics
         for group in groups:
             index = group["critic_index"]
             group["lr"] = scheduled if index is None else rates[index]
@@ -338,7 +391,7 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         # Non-finite rewards and observations are refused at the env step that gives them
         return super()._init_callback(with_env_step_check(callback), progress_bar)
 
-    def _critic_update_eager(
+    def _critic_update(
         self,
         observations: PyTorchObs,
         actions: th.Tensor,
@@ -351,9 +404,8 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         ent_coef: th.Tensor,
     ) -> CriticUpdate:
         """
-        The tensor code of the critic update (run through ``torch.compile`` with ``compile_update=True``): TD
-        target from the aggregated target critics, the online critics' values and loss, and the step-size update
-        (computed, not yet committed).
+        The tensor code of the critic update: TD target from the aggregated target critics, the online critics'
+        values and loss, and the step-size update (computed, not yet committed).
         """
         with th.no_grad():
             # Target critics' values q_i(s', a'), shape (S, K), aggregated to one target per sample
@@ -383,7 +435,7 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         nothing (the step-size statistics are computed, not committed); draws the next actions from torch's generator.
         """
         with th.no_grad():
-            update = self._critic_step_values(replay_data, self._entropy_coefficient(), eager=True)
+            update = self._critic_step_values(replay_data, self._entropy_coefficient())
         return update.target_q_values, update.current_q_values
 
     def critic_learning_rates(self) -> list[float]:
@@ -403,6 +455,9 @@ class SERASAC(NamedRuns, Capabilities, SAC):
             # Nothing to train (SB3's SAC accepts it too): no loss or diagnostic to log
             self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
             return
+        if self._compiled_step is not None:
+            self._train_compiled(gradient_steps, batch_size)
+            return
         logged: dict[str, list[th.Tensor]] = {"ent_coef": [], "actor_loss": [], "critic_loss": []}
         for gradient_step in range(gradient_steps):
             replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
@@ -421,9 +476,15 @@ class SERASAC(NamedRuns, Capabilities, SAC):
             self._critic_step(critic.critic_loss, logged)
             self._actor_step(gradient_step, replay_data.observations, actions_pi, log_prob, ent_coef, logged)
             self._target_step(gradient_step)
+        self._end_train(gradient_steps, critic, target_entropy, critic_rates)
+        record_means(self.logger, logged)
+
+    def _end_train(
+        self, gradient_steps: int, critic: CriticUpdate, target_entropy: th.Tensor | float, critic_rates: list[float]
+    ) -> None:
+        """Count the updates, log the last step's diagnostics and the critics' rates."""
         self._n_updates += gradient_steps
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
-        record_means(self.logger, logged)
         self._record_diagnostics(
             critic.target_q_values,
             critic.next_q_values,
@@ -434,6 +495,143 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         )
         for index, rate in enumerate(critic_rates):
             self.logger.record(f"train/critic_lr_{index}", rate)
+
+    def _train_compiled(self, gradient_steps: int, batch_size: int) -> None:
+        """
+        :meth:`train`'s steps through the compiled :meth:`_gradient_step`: the same values, read from the device
+        once, after the last step. A non-finite value raises ``FloatingPointError`` naming the first one; its step
+        and those after it changed nothing.
+        """
+        assert self._compiled_step is not None
+        states = [plan.state() for plan in self._adam_plans]
+        entropy_rate = self.ent_coef_optimizer.param_groups[0]["lr"] if self.ent_coef_optimizer is not None else 0.0
+        learning_rates = th.tensor(
+            [
+                self.actor.optimizer.param_groups[0]["lr"],
+                entropy_rate,
+                self.critic_lr_schedule(self._current_progress_remaining),
+            ],
+            device=self.device,
+        )
+        healthy = th.ones((), dtype=th.bool, device=self.device)
+        due = {flag: th.tensor(flag, device=self.device) for flag in (False, True)}
+        outputs = []
+        for gradient_step in range(gradient_steps):
+            replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
+            if self.use_sde:
+                self.actor.reset_noise()
+            if self.compile_update == "reduce-overhead":
+                th.compiler.cudagraph_mark_step_begin()
+            output = self._compiled_step(
+                replay_data.observations,
+                replay_data.actions,
+                replay_data.next_observations,
+                replay_data.rewards,
+                replay_data.dones,
+                _discounts(replay_data, self.gamma),
+                learning_rates=learning_rates,
+                target_update=due[target_update_due(self._n_updates, gradient_step, self.target_update_interval)],
+                healthy=healthy,
+                states=states,
+            )
+            if self.compile_update == "reduce-overhead":
+                # A CUDA graph's outputs are overwritten by its next replay
+                output = CompiledStepOutput(*th.utils._pytree.tree_map(th.clone, tuple(output)))
+            healthy = output.healthy
+            outputs.append(output)
+        finite = th.stack([output.finite for output in outputs])
+        logged = th.stack([output.logged for output in outputs]).mean(dim=0)
+        values = th.cat([finite.flatten().float(), logged, outputs[-1].critic_rates]).tolist()
+        n_flags = finite.numel()
+        if not all(values[:n_flags]):
+            first = values.index(0.0)
+            step, quantity = divmod(first, len(COMPILED_QUANTITIES))
+            raise FloatingPointError(
+                f"Non-finite {COMPILED_QUANTITIES[quantity]} {gradient_step_context(self, step)}: {NON_FINITE_ADVICE}"
+            )
+        critic_rates = values[n_flags + len(logged) :]
+        if self.adaptive_critic_lr:
+            self._update_critic_learning_rates(critic_rates)
+        names = ["ent_coef", "critic_loss", "actor_loss", *(["ent_coef_loss"] if self.ent_coef_optimizer else [])]
+        for name, value in zip(names, values[n_flags : n_flags + len(logged)], strict=True):
+            self.logger.record(f"train/{name}", value)
+        self._end_train(gradient_steps, outputs[-1].critic, outputs[-1].target_entropy, critic_rates)
+
+    def _gradient_step(
+        self,
+        observations: PyTorchObs,
+        actions: th.Tensor,
+        next_observations: PyTorchObs,
+        rewards: th.Tensor,
+        dones: th.Tensor,
+        discounts: th.Tensor | float,
+        *,
+        learning_rates: th.Tensor,
+        target_update: th.Tensor,
+        healthy: th.Tensor,
+        states: list[list[tuple[th.Tensor, th.Tensor, th.Tensor]]],
+    ) -> CompiledStepOutput:
+        """
+        One gradient step of :meth:`train` as one graph (``compile_update``): the same computation in the same order,
+        with gradients from ``torch.autograd.grad``, Adam steps and the target update masked by ``healthy`` and by
+        whether this step's values were finite, the actor's critic value by gather, and no value read back.
+
+        :param learning_rates: the actor's, the entropy coefficient's and the critics' scheduled rates, ``(3,)``
+        :param target_update: whether the target critics are updated after this step, a boolean scalar tensor
+        :param healthy: whether every earlier step of the ``train()`` call had only finite values
+        :param states: each optimizer's Adam state (:meth:`AdamPlan.state`), in ``_adam_plans`` order
+        """
+        actor_plan, critic_plan = self._adam_plans[:2]
+        actions_pi, log_prob = self.actor.action_log_prob(observations)
+        log_prob = log_prob.reshape(-1, 1)
+        ent_coef = self._entropy_coefficient()
+        critic = self._critic_values(observations, actions, next_observations, rewards, dones, discounts, ent_coef)
+        target_entropy, ent_coef_loss = self._entropy_target(critic.current_q_values, log_prob)
+        critic_grads = th.autograd.grad(critic.critic_loss, critic_plan.params)
+        finite = [
+            th.isfinite(ent_coef).all(),
+            th.isfinite(critic.target_q_values).all(),
+            th.isfinite(critic.critic_loss),
+            th.isfinite(ent_coef_loss) if ent_coef_loss is not None else healthy,
+            th.isfinite(critic.step_size.learning_rates).all() if self.adaptive_critic_lr else healthy,
+            all_finite(critic_grads),
+        ]
+        entropy_grads: tuple[th.Tensor, ...] = ()
+        if ent_coef_loss is not None:
+            entropy_grads = th.autograd.grad(ent_coef_loss, self._adam_plans[2].params)
+        finite.append(all_finite(entropy_grads) if entropy_grads else healthy)
+        apply = healthy & th.stack(finite).all()
+        # Step size, entropy coefficient, critics: in train()'s order, each where every value so far was finite
+        self.step_size.commit(critic.step_size, apply)
+        scheduled = learning_rates[2]
+        critic_rates = critic.step_size.learning_rates if self.adaptive_critic_lr else scheduled.expand(self.critic.n_critics)
+        if ent_coef_loss is not None:
+            masked_adam(self._adam_plans[2], entropy_grads, states[2], [learning_rates[1]], apply)
+        group_rates = [
+            scheduled if group["critic_index"] is None else critic_rates[group["critic_index"]]
+            for group in self.critic.optimizer.param_groups
+        ]
+        masked_adam(critic_plan, critic_grads, states[1], group_rates, apply)
+        # The actor against the updated critics, the median critic's value by gather (static shapes)
+        actor_loss = (ent_coef * log_prob - self._actor_q_value_gathered(observations, actions_pi)).mean()
+        actor_grads = th.autograd.grad(actor_loss, actor_plan.params)
+        finite += [th.isfinite(actor_loss), all_finite(actor_grads)]
+        apply_actor = apply & finite[-2] & finite[-1]
+        masked_adam(actor_plan, actor_grads, states[0], [learning_rates[0]], apply_actor)
+        masked_polyak(self._critic_target_parameters, self._critic_parameters, self.tau, apply_actor & target_update)
+        masked_polyak(self.batch_norm_stats_target, self.batch_norm_stats, 1.0, apply_actor & target_update)
+        logged = [ent_coef.reshape(()), critic.critic_loss.detach(), actor_loss.detach()]
+        if ent_coef_loss is not None:
+            logged.append(ent_coef_loss.detach())
+        detached = CriticUpdate(*critic[:3], critic.current_q_values.detach(), critic.critic_loss.detach(), critic.step_size)
+        return CompiledStepOutput(
+            healthy=apply_actor,
+            finite=th.stack(finite),
+            logged=th.stack(logged),
+            critic_rates=critic_rates,
+            critic=detached,
+            target_entropy=th.as_tensor(target_entropy, device=self.device),
+        )
 
     def _start_train(self) -> list[float]:
         """Training mode, the actor's and entropy coefficient's schedules, the critics' rates; returns the latter."""
@@ -451,29 +649,41 @@ class SERASAC(NamedRuns, Capabilities, SAC):
             return th.exp(self.log_ent_coef.detach())
         return self.ent_coef_tensor
 
-    def _critic_step_values(self, replay_data: ReplayBufferSamples, ent_coef: th.Tensor, eager: bool = False) -> CriticUpdate:
-        """
-        The critic update on a batch (Algorithm 2, lines 5-16), computed, nothing changed yet (``eager``: without
-        ``compile_update``'s compiled function).
-        """
-        # For n-step replay, the discount factor is gamma**n_steps (when no early termination)
-        discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
+    def _critic_step_values(self, replay_data: ReplayBufferSamples, ent_coef: th.Tensor) -> CriticUpdate:
+        """The critic update on a batch (Algorithm 2, lines 5-16), computed, nothing changed yet."""
+        return self._critic_values(
+            replay_data.observations,
+            replay_data.actions,
+            replay_data.next_observations,
+            replay_data.rewards,
+            replay_data.dones,
+            _discounts(replay_data, self.gamma),
+            ent_coef,
+        )
+
+    def _critic_values(
+        self,
+        observations: PyTorchObs,
+        actions: th.Tensor,
+        next_observations: PyTorchObs,
+        rewards: th.Tensor,
+        dones: th.Tensor,
+        discounts: th.Tensor | float,
+        ent_coef: th.Tensor,
+    ) -> CriticUpdate:
+        """:meth:`_critic_update` at next actions drawn from the current actor."""
         with th.no_grad():
-            # Target actions from the current actor
-            next_actions, next_log_prob = self.actor.action_log_prob(replay_data.next_observations)
-        critic_update = self._critic_update_eager if eager else self._critic_update
-        return CriticUpdate(
-            *critic_update(
-                replay_data.observations,
-                replay_data.actions,
-                replay_data.next_observations,
-                replay_data.rewards,
-                replay_data.dones,
-                discounts,
-                next_actions,
-                next_log_prob.reshape(-1, 1),
-                ent_coef,
-            )
+            next_actions, next_log_prob = self.actor.action_log_prob(next_observations)
+        return self._critic_update(
+            observations,
+            actions,
+            next_observations,
+            rewards,
+            dones,
+            discounts,
+            next_actions,
+            next_log_prob.reshape(-1, 1),
+            ent_coef,
         )
 
     def _entropy_target(self, current_q_values: th.Tensor, log_prob: th.Tensor) -> tuple[th.Tensor | float, th.Tensor | None]:
@@ -507,7 +717,7 @@ class SERASAC(NamedRuns, Capabilities, SAC):
     def _step_size_step(self, update: StepSizeUpdate, critic_rates: list[float]) -> list[float]:
         """Commit the step-size statistics; with the adaptive step size, set each critic's new rate and return them."""
         self.step_size.commit(update)
-        return self._update_critic_learning_rates(update) if self.adaptive_critic_lr else critic_rates
+        return self._update_critic_learning_rates(update.learning_rates.tolist()) if self.adaptive_critic_lr else critic_rates
 
     def _entropy_step(self, ent_coef_loss: th.Tensor | None, logged: dict[str, list[th.Tensor]]) -> None:
         """Optimize the entropy coefficient (the temperature, alpha in the paper) when it is learned."""
@@ -569,6 +779,15 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         assert index is not None
         return self.critic.selected_q_values(q_input, index)
 
+    def _actor_q_value_gathered(self, observations: PyTorchObs, actions_pi: th.Tensor) -> th.Tensor:
+        """:meth:`_actor_q_value` with static shapes: every critic runs with a graph, the selected one's value is gathered."""
+        q_values = self.critic.q_values(observations, actions_pi)
+        if self.actor_aggregation == "mean":
+            return q_values.mean(dim=1, keepdim=True)
+        index = selected_critic(q_values.detach(), self.actor_aggregation)
+        assert index is not None
+        return q_values.gather(1, index.unsqueeze(1))
+
     def _record_diagnostics(
         self,
         target_q_values: th.Tensor,
@@ -616,12 +835,18 @@ class SERASAC(NamedRuns, Capabilities, SAC):
             "_actor_parameters",
             "_critic_parameters",
             "_critic_target_parameters",
-            "_critic_update",
+            "_compiled_step",
+            "_adam_plans",
         ]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts, saved_pytorch_variables = super()._get_torch_save_params()
         return [*state_dicts, "step_size"], saved_pytorch_variables
+
+
+def _discounts(replay_data: ReplayBufferSamples, gamma: float) -> th.Tensor | float:
+    """The discount of each replayed transition: ``gamma ** n_steps`` for n-step replay (when no early end), else gamma."""
+    return replay_data.discounts if replay_data.discounts is not None else gamma
 
 
 def _check_sac_hyperparameters(

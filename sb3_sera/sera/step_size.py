@@ -135,8 +135,16 @@ class VarianceAdaptiveStepSize(nn.Module):
         learning_rates = critic_learning_rates(kappa, self.lr_max, self.kappa_min)
         return StepSizeUpdate(td_error_var, estimation_var, measurement_var, kappa, learning_rates)
 
-    def commit(self, update: StepSizeUpdate) -> None:
-        """Store the running averages of ``update`` as the new state."""
-        self.td_error_var.copy_(update.td_error_var)
-        self.estimation_var.copy_(update.estimation_var)
-        self.initialized.fill_(True)
+    def commit(self, update: StepSizeUpdate, apply: th.Tensor | None = None) -> None:
+        """
+        Store the running averages of ``update`` as the new state; with ``apply``, a boolean scalar tensor, only
+        where it is true (a compiled step decides on the device whether its values were finite).
+        """
+        if apply is None:
+            self.td_error_var.copy_(update.td_error_var)
+            self.estimation_var.copy_(update.estimation_var)
+            self.initialized.fill_(True)
+            return
+        self.td_error_var.copy_(th.where(apply, update.td_error_var, self.td_error_var))
+        self.estimation_var.copy_(th.where(apply, update.estimation_var, self.estimation_var))
+        self.initialized.copy_(self.initialized | apply)

@@ -1,0 +1,149 @@
+"""
+A gradient step compiled whole: ``torch.compile`` with one graph and no host reads, and Adam as a masked update.
+
+A step compiled with :func:`compile_step` computes its gradients with ``torch.autograd.grad`` inside the graph and
+applies them with :func:`masked_adam`, which takes a flag tensor: where the flag is false (a value of the step was not
+finite) the parameters and the optimizer's state keep their values, so the step needs no host read to decide. The
+caller reads the flags once per ``train()`` call and raises. :class:`AdamPlan` holds what the update needs from a
+torch ``Adam``/``AdamW`` optimizer and keeps its state in the optimizer, in torch's own format: a compiled model saves,
+loads and continues eagerly as any other.
+"""
+
+from collections.abc import Callable, Sequence
+from typing import Any, Literal, TypeVar
+
+import torch as th
+
+#: ``compile_update``'s values: off, on (one graph per gradient step), or on with CUDA graphs (a GPU is needed)
+CompileMode = Literal[False, True, "reduce-overhead"]
+COMPILE_MODES: tuple[CompileMode, ...] = (False, True, "reduce-overhead")
+
+_Output = TypeVar("_Output")
+
+
+def compile_step(step: Callable[..., _Output], mode: CompileMode) -> Callable[..., _Output]:
+    """
+    ``step`` through ``torch.compile`` as one graph (``fullgraph=True``: a graph break is an error), static shapes,
+    random ops drawing from torch's generator as in eager mode (``fallback_random``), and with ``"reduce-overhead"``
+    replayed as a CUDA graph. ``torch.autograd.grad`` is traced into the graph (Dynamo's ``trace_autograd_ops``,
+    set only while the compiled step runs).
+    """
+    options: dict[str, str | int | bool | Callable[..., Any]] = {
+        "fallback_random": True,
+        "triton.cudagraphs": mode == "reduce-overhead",
+    }
+    compiled = th.compile(step, fullgraph=True, dynamic=False, options=options)
+
+    def run(*args: Any, **kwargs: Any) -> _Output:
+        with th._dynamo.config.patch(trace_autograd_ops=True):
+            return compiled(*args, **kwargs)
+
+    return run
+
+
+class AdamPlan:
+    """
+    What :func:`masked_adam` needs from a torch ``Adam`` or ``AdamW`` optimizer, fixed when the step is compiled: its
+    parameters in group order, each one's group, and each group's betas, eps and weight decay. The learning rates are
+    not part of the plan (they change without recompiling: :func:`masked_adam` takes them as tensors).
+
+    :param optimizer: the optimizer (``amsgrad``, ``maximize`` and ``differentiable`` are not supported)
+    :param name: what it optimizes, for error messages
+    """
+
+    def __init__(self, optimizer: th.optim.Optimizer, name: str):
+        if type(optimizer) not in (th.optim.Adam, th.optim.AdamW):
+            raise ValueError(
+                f"compile_update needs the {name} optimizer to be th.optim.Adam or th.optim.AdamW, got "
+                f"{type(optimizer).__name__}: pass optimizer_class=th.optim.Adam in policy_kwargs, or compile_update=False"
+            )
+        for option in ("amsgrad", "maximize", "differentiable"):
+            if any(group.get(option, False) for group in optimizer.param_groups):
+                raise ValueError(f"compile_update does not support Adam's {option}=True ({name} optimizer)")
+        self.optimizer = optimizer
+        self.params: list[th.Tensor] = [param for group in optimizer.param_groups for param in group["params"]]
+        self.group_of: list[int] = [index for index, group in enumerate(optimizer.param_groups) for _ in group["params"]]
+        self.settings: list[tuple[float, float, float, float, bool]] = [
+            (*group["betas"], group["eps"], group["weight_decay"], bool(group.get("decoupled_weight_decay", False)))
+            for group in optimizer.param_groups
+        ]
+
+    def state(self) -> list[tuple[th.Tensor, th.Tensor, th.Tensor]]:
+        """
+        Each parameter's ``(step, exp_avg, exp_avg_sq)`` from the optimizer (read outside the graph: loading a model
+        replaces them), created where missing as torch creates them, with ``step`` on the parameter's device.
+        """
+        states = []
+        for param in self.params:
+            state = self.optimizer.state[param]
+            if not state:
+                state["step"] = th.zeros((), dtype=th.float32, device=param.device)
+                state["exp_avg"] = th.zeros_like(param, memory_format=th.preserve_format)
+                state["exp_avg_sq"] = th.zeros_like(param, memory_format=th.preserve_format)
+            states.append((state["step"], state["exp_avg"], state["exp_avg_sq"]))
+        if any(param.device.type != "cpu" for param in self.params):
+            # torch's own step (after loading without compile_update) accepts a device step when capturable
+            for group in self.optimizer.param_groups:
+                group["capturable"] = not group.get("fused", False)
+        return states
+
+
+def masked_adam(
+    plan: AdamPlan,
+    grads: Sequence[th.Tensor],
+    state: Sequence[tuple[th.Tensor, th.Tensor, th.Tensor]],
+    learning_rates: Sequence[th.Tensor],
+    apply: th.Tensor,
+) -> None:
+    """
+    One Adam step of ``plan``'s parameters (torch's update, its ``step`` counted in ``state``), committed only where
+    ``apply`` is true: otherwise parameters and state keep their values. Runs inside a compiled graph.
+
+    :param grads: the gradient of each parameter, in ``plan.params`` order
+    :param state: ``plan.state()``
+    :param learning_rates: each parameter group's learning rate, a scalar tensor
+    :param apply: a boolean scalar tensor
+    """
+    with th.no_grad():
+        for param, grad, group, (step, exp_avg, exp_avg_sq) in zip(plan.params, grads, plan.group_of, state, strict=True):
+            beta1, beta2, eps, weight_decay, decoupled = plan.settings[group]
+            lr = learning_rates[group]
+            new_param = param
+            if weight_decay != 0:
+                if decoupled:
+                    new_param = param * (1 - lr * weight_decay)
+                else:
+                    grad = grad + weight_decay * param
+            new_step = step + 1
+            new_exp_avg = exp_avg.lerp(grad, 1 - beta1)
+            new_exp_avg_sq = exp_avg_sq * beta2 + (1 - beta2) * grad * grad
+            bias_correction1 = 1 - th.pow(beta1, new_step)
+            bias_correction2 = 1 - th.pow(beta2, new_step)
+            denom = new_exp_avg_sq.sqrt() / bias_correction2.sqrt() + eps
+            new_param = new_param - (lr / bias_correction1) * new_exp_avg / denom
+            param.copy_(th.where(apply, new_param, param))
+            exp_avg.copy_(th.where(apply, new_exp_avg, exp_avg))
+            exp_avg_sq.copy_(th.where(apply, new_exp_avg_sq, exp_avg_sq))
+            step.copy_(th.where(apply, new_step, step))
+
+
+def masked_polyak(targets: Sequence[th.Tensor], sources: Sequence[th.Tensor], tau: float, apply: th.Tensor) -> None:
+    """``target <- (1 - tau) * target + tau * source`` for each pair, where ``apply`` is true; inside a compiled graph."""
+    with th.no_grad():
+        for target, source in zip(targets, sources, strict=True):
+            target.copy_(th.where(apply, target * (1.0 - tau) + tau * source, target))
+
+
+def all_finite(tensors: Sequence[th.Tensor]) -> th.Tensor:
+    """A boolean scalar tensor: whether every entry of every tensor is finite (no host read)."""
+    return th.stack([th.isfinite(tensor).all() for tensor in tensors]).all()
+
+
+def count_graph_breaks(step: Callable[..., Any], *args: Any, **kwargs: Any) -> tuple[int, int]:
+    """
+    Trace ``step`` on the given arguments with Dynamo as :func:`compile_step` does (``torch._dynamo.explain``, which
+    runs it once) and return its number of graphs and of graph breaks: ``(1, 0)`` for a step compiled whole.
+    """
+    with th._dynamo.config.patch(trace_autograd_ops=True):
+        explanation = th._dynamo.explain(step)(*args, **kwargs)
+    return explanation.graph_count, explanation.graph_break_count

@@ -1,0 +1,175 @@
+"""
+``compile_update``: SERASAC's whole gradient step as one ``torch.compile`` graph, equal to the eager step up to float
+rounding, with the non-finite guard kept (read once per ``train()`` call, updates masked) and save/load.
+"""
+
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+import torch as th
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.utils import set_random_seed
+
+from sb3_sera import SERASAC
+from sb3_sera.common.compiled import count_graph_breaks
+
+#: One configuration for every compiled model of the file: the compiled graph is built once, then found in the cache
+SETTINGS: dict[str, Any] = dict(
+    learning_starts=64,
+    batch_size=32,
+    buffer_size=1_000,
+    policy_kwargs=dict(n_critics=3, critic_archs=[[16], [16, 16], [24]], net_arch=[16]),
+)
+STEPS = 4
+
+
+def build(compile_update: Any = False, policy: str = "MlpPolicy", env: str = "Pendulum-v1", **kwargs: Any) -> SERASAC:
+    """
+    A SERASAC with ``SETTINGS`` that collected ``learning_starts`` transitions and made one gradient step (built and
+    run before the next model is built: each model's construction seeds the global generators).
+    """
+    model = SERASAC(policy, env, seed=0, compile_update=compile_update, **{**SETTINGS, **kwargs})
+    model.learn(SETTINGS["learning_starts"] + 1)
+    return model
+
+
+def torch_state(model: SERASAC) -> dict[str, th.Tensor]:
+    """Networks, step-size state, entropy coefficient and every optimizer's state, flat."""
+    state = {f"policy.{key}": value.clone() for key, value in model.policy.state_dict().items()}
+    state.update({f"step_size.{key}": value.clone() for key, value in model.step_size.state_dict().items()})
+    state["log_ent_coef"] = model.log_ent_coef.detach().clone()
+    optimizers = {"actor": model.actor.optimizer, "critic": model.critic.optimizer, "ent_coef": model.ent_coef_optimizer}
+    for name, optimizer in optimizers.items():
+        for index, param_state in optimizer.state_dict()["state"].items():
+            state.update({f"{name}.{index}.{key}": value.clone() for key, value in param_state.items()})
+    return state
+
+
+def train_both(models: list[SERASAC], gradient_steps: int) -> list[dict[str, float]]:
+    """Train each model from the same random state; return what each logged."""
+    logged = []
+    for model in models:
+        set_random_seed(1)
+        model.train(gradient_steps=gradient_steps, batch_size=SETTINGS["batch_size"])
+        logged.append({key: value for key, value in model.logger.name_to_value.items() if key.startswith("train/")})
+    return logged
+
+
+@pytest.fixture(scope="module")
+def eager_and_compiled() -> tuple[SERASAC, SERASAC, list[dict[str, float]]]:
+    models = [build(False), build(True)]
+    return models[0], models[1], train_both(models, STEPS)
+
+
+def assert_close_states(first: dict[str, th.Tensor], second: dict[str, th.Tensor]) -> None:
+    assert first.keys() == second.keys()
+    for key, value in first.items():
+        np.testing.assert_allclose(value.float(), second[key].float(), rtol=1e-4, atol=1e-5, err_msg=key)
+
+
+def test_the_compiled_step_equals_the_eager_one(eager_and_compiled):
+    eager, compiled, (eager_logged, compiled_logged) = eager_and_compiled
+    assert compiled._compiled_step is not None and eager._compiled_step is None
+    # Parameters, step-size state, entropy coefficient, Adam's moments and step counts of all three optimizers
+    assert_close_states(torch_state(eager), torch_state(compiled))
+    assert compiled.critic.optimizer.state_dict()["state"][0]["step"] == STEPS + 1
+    # Every logged value: losses, entropy coefficient, critic rates, the SERA diagnostics
+    assert eager_logged.keys() == compiled_logged.keys()
+    assert {"train/critic_loss", "train/actor_loss", "train/ent_coef_loss", "train/critic_lr_2", "train/kappa_0"} <= set(
+        compiled_logged
+    )
+    for key, value in eager_logged.items():
+        assert compiled_logged[key] == pytest.approx(value, rel=1e-4, abs=1e-6), key
+    assert compiled.critic_learning_rates() == pytest.approx(eager.critic_learning_rates(), rel=1e-5)
+    assert compiled._n_updates == eager._n_updates == STEPS + 1
+
+
+def test_the_step_is_one_graph_without_breaks(eager_and_compiled):
+    _, compiled, _ = eager_and_compiled
+    batch = compiled.replay_buffer.sample(SETTINGS["batch_size"])
+    states = [plan.state() for plan in compiled._adam_plans]
+    before = torch_state(compiled)
+    graphs, breaks = count_graph_breaks(
+        compiled._gradient_step,
+        batch.observations,
+        batch.actions,
+        batch.next_observations,
+        batch.rewards,
+        batch.dones,
+        compiled.gamma,
+        learning_rates=th.full((3,), 3e-4),
+        target_update=th.tensor(True),
+        # Not healthy: the traced step changes nothing
+        healthy=th.tensor(False),
+        states=states,
+    )
+    assert (graphs, breaks) == (1, 0)
+    assert_close_states(before, torch_state(compiled))
+    for key, value in before.items():
+        assert th.equal(value, torch_state(compiled)[key]), key
+
+
+@pytest.mark.parametrize(
+    ("poison", "named"), [(math.nan, "TD target"), (3e38, "critic loss")], ids=["nan_reward", "overflowing_loss"]
+)
+def test_a_non_finite_value_stops_the_compiled_step_and_changes_nothing(poison, named):
+    model = build(True)
+    model.train(gradient_steps=2, batch_size=SETTINGS["batch_size"])
+    model.replay_buffer.rewards[:] = poison
+    before, updates = torch_state(model), model._n_updates
+    with pytest.raises(FloatingPointError, match=rf"^Non-finite {named} at gradient step {updates + 1} "):
+        model.train(gradient_steps=3, batch_size=SETTINGS["batch_size"])
+    after = torch_state(model)
+    for key, value in before.items():
+        assert th.equal(value, after[key]), key
+    assert model._n_updates == updates
+
+
+def test_a_compiled_model_saves_loads_and_goes_on(eager_and_compiled, tmp_path):
+    _, compiled, _ = eager_and_compiled
+    compiled.save(tmp_path / "model")
+    compiled.save_replay_buffer(tmp_path / "buffer")
+    steps = compiled.critic.optimizer.state_dict()["state"][0]["step"]
+    for compile_update in (True, False):
+        loaded = SERASAC.load(tmp_path / "model", env=make_vec_env("Pendulum-v1"), compile_update=compile_update)
+        loaded.load_replay_buffer(tmp_path / "buffer")
+        assert loaded.compile_update is compile_update and (loaded._compiled_step is not None) is compile_update
+        assert_close_states(torch_state(compiled), torch_state(loaded))
+        # The loaded optimizers' state (written by the compiled step in torch's format) carries on, either way
+        loaded.learn(2, reset_num_timesteps=False)
+        assert loaded.critic.optimizer.state_dict()["state"][0]["step"] == steps + 2
+        assert loaded.actor.optimizer.state_dict()["state"][0]["step"] == steps + 2
+
+
+def test_the_compiled_step_follows_the_critic_lr_max_schedule():
+    # The rate at full gain is a buffer the compiled step reads: a new value needs no recompilation
+    model = build(True, critic_lr_max=lambda progress: 1e-3 * progress)
+    for progress in (1.0, 0.5):
+        model._current_progress_remaining = progress
+        model.train(gradient_steps=1, batch_size=SETTINGS["batch_size"])
+        kappa = model.logger.name_to_value["train/kappa_0"]
+        assert model.logger.name_to_value["train/critic_lr_0"] == pytest.approx(
+            1e-3 * progress * (0.2 + 0.8 * kappa), rel=1e-5
+        )
+
+
+def test_the_multi_agent_step_compiles_and_equals_the_eager_one():
+    models = [build(flag, "CTDEPolicy", "sb3_sera/SimpleSpread-v0", policy_kwargs={}) for flag in (False, True)]
+    eager_logged, compiled_logged = train_both(models, 2)
+    assert_close_states(torch_state(models[0]), torch_state(models[1]))
+    assert compiled_logged["train/critic_loss"] == pytest.approx(eager_logged["train/critic_loss"], rel=1e-4)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        (dict(compile_update="reduce-overhead"), "needs device='cuda'"),
+        (dict(compile_update=True, policy_kwargs=dict(optimizer_class=th.optim.SGD)), "th.optim.Adam or th.optim.AdamW"),
+        (dict(compile_update="yes"), "compile_update"),
+    ],
+)
+def test_compile_settings_that_cannot_work_are_refused(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        SERASAC("MlpPolicy", "Pendulum-v1", device="cpu", **kwargs)
