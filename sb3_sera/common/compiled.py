@@ -10,15 +10,37 @@ loads and continues eagerly as any other.
 """
 
 from collections.abc import Callable, Sequence
-from typing import Any, Literal, TypeVar
+from typing import Any, Literal, Protocol, TypeVar
 
 import torch as th
+from torch.utils import _pytree
+
+from sb3_sera.common.checks import NON_FINITE_ADVICE
 
 #: ``compile_update``'s values: off, on (one graph per gradient step), or on with CUDA graphs (a GPU is needed)
 CompileMode = Literal[False, True, "reduce-overhead"]
 COMPILE_MODES: tuple[CompileMode, ...] = (False, True, "reduce-overhead")
 
 _Output = TypeVar("_Output")
+
+
+class StepOutput(Protocol):
+    """What a compiled gradient step gives back first (a ``NamedTuple`` of tensors)."""
+
+    @property
+    def healthy(self) -> th.Tensor:
+        """Whether this step and every earlier one of the ``train()`` call had only finite values (their updates applied)."""
+
+    @property
+    def finite(self) -> th.Tensor:
+        """One flag per quantity the step checks: whether it was finite."""
+
+    @property
+    def logged(self) -> th.Tensor:
+        """The step's values to log, ``(L,)``."""
+
+
+_Step = TypeVar("_Step", bound=StepOutput)
 
 
 def compile_step(step: Callable[..., _Output], mode: CompileMode) -> Callable[..., _Output]:
@@ -147,3 +169,44 @@ def count_graph_breaks(step: Callable[..., Any], *args: Any, **kwargs: Any) -> t
     with th._dynamo.config.patch(trace_autograd_ops=True):
         explanation = th._dynamo.explain(step)(*args, **kwargs)
     return explanation.graph_count, explanation.graph_break_count
+
+
+def run_steps(
+    step: Callable[[int, th.Tensor], _Step], gradient_steps: int, cuda_graphs: bool, device: th.device
+) -> list[_Step]:
+    """
+    Run ``step(gradient_step, healthy)`` ``gradient_steps`` times, each given the previous one's ``healthy`` flag (so
+    that after a non-finite value nothing changes), without reading anything back. With CUDA graphs each replay
+    overwrites the previous one's outputs: they are copied.
+    """
+    healthy = th.ones((), dtype=th.bool, device=device)
+    outputs = []
+    for gradient_step in range(gradient_steps):
+        if cuda_graphs:
+            th.compiler.cudagraph_mark_step_begin()
+        output = step(gradient_step, healthy)
+        if cuda_graphs:
+            output = _pytree.tree_map(th.clone, output)
+        healthy = output.healthy
+        outputs.append(output)
+    return outputs
+
+
+def read_steps(
+    outputs: Sequence[StepOutput], quantities: Sequence[str], where: Callable[[int], str], extra: th.Tensor
+) -> tuple[list[float], list[float]]:
+    """
+    Read the steps' finite flags, the means of their logged values and ``extra`` in one transfer from the device.
+    Raise ``FloatingPointError`` naming the first non-finite quantity (``quantities``, in the order of the flags)
+    and where it was (``where(gradient_step)``).
+
+    :return: the logged means and ``extra``'s values
+    """
+    finite = th.stack([output.finite for output in outputs])
+    logged = th.stack([output.logged for output in outputs]).mean(dim=0)
+    values = th.cat([finite.flatten().float(), logged, extra.flatten().float()]).tolist()
+    n_flags = finite.numel()
+    if not all(values[:n_flags]):
+        step, quantity = divmod(values.index(0.0), len(quantities))
+        raise FloatingPointError(f"Non-finite {quantities[quantity]} {where(step)}: {NON_FINITE_ADVICE}")
+    return values[n_flags : n_flags + len(logged)], values[n_flags + len(logged) :]

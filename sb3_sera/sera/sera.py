@@ -2,6 +2,7 @@
 
 import warnings
 from collections.abc import Callable
+from functools import partial
 from typing import Any, ClassVar, NamedTuple
 
 import torch as th
@@ -16,7 +17,6 @@ from stable_baselines3.sac import SAC
 from sb3_sera.common.arguments import checks_keywords
 from sb3_sera.common.capabilities import Capabilities
 from sb3_sera.common.checks import (
-    NON_FINITE_ADVICE,
     check_choice,
     check_ent_coef,
     check_finite,
@@ -34,6 +34,8 @@ from sb3_sera.common.compiled import (
     compile_step,
     masked_adam,
     masked_polyak,
+    read_steps,
+    run_steps,
 )
 from sb3_sera.common.naming import NamedRuns
 from sb3_sera.common.off_policy import record_means, start_train, target_update_due
@@ -93,7 +95,10 @@ COMPILED_QUANTITIES = (
 
 
 class CompiledStepOutput(NamedTuple):
-    """What one compiled gradient step gives back: tensors only, nothing read from the device during the step."""
+    """
+    What one compiled gradient step gives back (:class:`~sb3_sera.common.compiled.StepOutput`): tensors only, nothing
+    read from the device during the step.
+    """
 
     #: Whether this step and every earlier one of the ``train()`` call had only finite values (their updates applied)
     healthy: th.Tensor
@@ -513,16 +518,14 @@ class SERASAC(NamedRuns, Capabilities, SAC):
             ],
             device=self.device,
         )
-        healthy = th.ones((), dtype=th.bool, device=self.device)
         due = {flag: th.tensor(flag, device=self.device) for flag in (False, True)}
-        outputs = []
-        for gradient_step in range(gradient_steps):
+
+        def step(gradient_step: int, healthy: th.Tensor) -> CompiledStepOutput:
+            assert self._compiled_step is not None
             replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
             if self.use_sde:
                 self.actor.reset_noise()
-            if self.compile_update == "reduce-overhead":
-                th.compiler.cudagraph_mark_step_begin()
-            output = self._compiled_step(
+            return self._compiled_step(
                 replay_data.observations,
                 replay_data.actions,
                 replay_data.next_observations,
@@ -534,26 +537,15 @@ class SERASAC(NamedRuns, Capabilities, SAC):
                 healthy=healthy,
                 states=states,
             )
-            if self.compile_update == "reduce-overhead":
-                # A CUDA graph's outputs are overwritten by its next replay
-                output = CompiledStepOutput(*th.utils._pytree.tree_map(th.clone, tuple(output)))
-            healthy = output.healthy
-            outputs.append(output)
-        finite = th.stack([output.finite for output in outputs])
-        logged = th.stack([output.logged for output in outputs]).mean(dim=0)
-        values = th.cat([finite.flatten().float(), logged, outputs[-1].critic_rates]).tolist()
-        n_flags = finite.numel()
-        if not all(values[:n_flags]):
-            first = values.index(0.0)
-            step, quantity = divmod(first, len(COMPILED_QUANTITIES))
-            raise FloatingPointError(
-                f"Non-finite {COMPILED_QUANTITIES[quantity]} {gradient_step_context(self, step)}: {NON_FINITE_ADVICE}"
-            )
-        critic_rates = values[n_flags + len(logged) :]
+
+        outputs = run_steps(step, gradient_steps, self.compile_update == "reduce-overhead", self.device)
+        logged, critic_rates = read_steps(
+            outputs, COMPILED_QUANTITIES, partial(gradient_step_context, self), outputs[-1].critic_rates
+        )
         if self.adaptive_critic_lr:
             self._update_critic_learning_rates(critic_rates)
         names = ["ent_coef", "critic_loss", "actor_loss", *(["ent_coef_loss"] if self.ent_coef_optimizer else [])]
-        for name, value in zip(names, values[n_flags : n_flags + len(logged)], strict=True):
+        for name, value in zip(names, logged, strict=True):
             self.logger.record(f"train/{name}", value)
         self._end_train(gradient_steps, outputs[-1].critic, outputs[-1].target_entropy, critic_rates)
 

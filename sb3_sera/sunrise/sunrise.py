@@ -1,6 +1,7 @@
 """SUNRISE: an ensemble of SAC agents with weighted Bellman backups and UCB exploration (docs/SPEC.md, section 4)."""
 
-from typing import Any, ClassVar, cast
+from functools import partial
+from typing import Any, ClassVar, NamedTuple, cast
 
 import numpy as np
 import torch as th
@@ -17,6 +18,7 @@ from stable_baselines3.common.utils import polyak_update
 from sb3_sera.common.arguments import check_gymnasium_env, checks_keywords
 from sb3_sera.common.capabilities import Capabilities
 from sb3_sera.common.checks import (
+    check_choice,
     check_ent_coef,
     check_finite,
     check_int,
@@ -24,6 +26,17 @@ from sb3_sera.common.checks import (
     check_range,
     gradient_step_context,
     with_env_step_check,
+)
+from sb3_sera.common.compiled import (
+    COMPILE_MODES,
+    AdamPlan,
+    CompileMode,
+    all_finite,
+    compile_step,
+    masked_adam,
+    masked_polyak,
+    read_steps,
+    run_steps,
 )
 from sb3_sera.common.naming import NamedRuns
 from sb3_sera.common.off_policy import record_means, start_train, target_update_due
@@ -37,6 +50,48 @@ from sb3_sera.sunrise.policies import (
     MlpPolicy,
     SUNRISEPolicy,
 )
+
+#: What a compiled gradient step checks, in the order in which a cause precedes its consequences
+COMPILED_QUANTITIES = (
+    "entropy coefficient",
+    "TD target",
+    "critic loss",
+    "entropy coefficient loss",
+    "critic gradients",
+    "entropy coefficient gradient",
+    "actor loss",
+    "actor gradients",
+)
+#: What a gradient step logs, in this order (``ent_coef_loss`` when the coefficients are learned)
+LOGGED = ("ent_coef", "critic_loss", "actor_loss", "backup_weight", "ensemble_std", "ent_coef_loss")
+
+
+class SUNRISELosses(NamedTuple):
+    """The losses of one gradient step of every member, before any parameter changes (``N`` members, ``S`` samples)."""
+
+    #: The members' actions at the replayed states, ``(N, S, A)``, with their graph, and their log-probabilities
+    actions_pi: th.Tensor
+    log_prob: th.Tensor
+    #: Each member's entropy coefficient, ``(N,)``, and the summed loss of the learned ones (None when fixed)
+    ent_coef: th.Tensor
+    ent_coef_loss: th.Tensor | None
+    #: Each member's soft TD target, ``(N, S)``, and the summed weighted Bellman loss
+    target_q_values: th.Tensor
+    critic_loss: th.Tensor
+    #: The backup weights ``(S,)`` and the ensemble's standard deviation ``(S,)``
+    weights: th.Tensor
+    std_q: th.Tensor
+
+
+class CompiledStepOutput(NamedTuple):
+    """What one compiled gradient step gives back (:class:`~sb3_sera.common.compiled.StepOutput`)."""
+
+    #: Whether this step and every earlier one of the ``train()`` call had only finite values (their updates applied)
+    healthy: th.Tensor
+    #: One flag per quantity of :data:`COMPILED_QUANTITIES`: whether it was finite
+    finite: th.Tensor
+    #: The step's values of :data:`LOGGED`
+    logged: th.Tensor
 
 
 class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
@@ -86,6 +141,10 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
         (the authors' 20; 0 weighs every backup 1)
     :param ucb_lambda: ``lambda >= 0`` of the UCB exploration ``mean_Q + lambda * std_Q`` over the members'
         proposed actions; 0 (the authors' default) lets one random member act for a whole episode
+    :param compile_update: compile the whole gradient step of every member (losses, Adam steps, target update) into
+        one graph with ``torch.compile`` (``fullgraph=True``), as SERASAC's ``compile_update``: the same results up to
+        float rounding, a non-finite value still stops training naming it (read once per ``train()`` call, the
+        updates of its step and the later ones masked); ``"reduce-overhead"`` adds CUDA graphs (``device="cuda"``)
     :param tensorboard_log: the log location for tensorboard (if None, no logging)
     :param policy_kwargs: additional arguments to be passed to the policy on creation, e.g. ``net_arch`` and
         ``n_critics`` (critics per member, 2)
@@ -129,6 +188,7 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
         bootstrap_prob: float = 0.5,
         backup_temperature: float = 20.0,
         ucb_lambda: float = 0.0,
+        compile_update: CompileMode = False,
         tensorboard_log: str | None = None,
         policy_kwargs: dict[str, Any] | None = None,
         verbose: int = 0,
@@ -152,6 +212,8 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
         self.bootstrap_prob = check_range("bootstrap_prob", bootstrap_prob, 0.0, 1.0, low_inclusive=False)
         self.backup_temperature = check_range("backup_temperature", backup_temperature, 0.0, None)
         self.ucb_lambda = check_range("ucb_lambda", ucb_lambda, 0.0, None)
+        check_choice("compile_update", compile_update, COMPILE_MODES)
+        self.compile_update = compile_update
         for argument, kwargs, names in (
             ("policy_kwargs", policy_kwargs, ("n_members", "ucb_lambda")),
             ("replay_buffer_kwargs", replay_buffer_kwargs, ("n_members", "bootstrap_prob")),
@@ -219,6 +281,19 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
             self.ent_coef_optimizer = th.optim.Adam([self.log_ent_coef], lr=self.lr_schedule(1))
         else:
             self.ent_coef_tensor = th.full((self.n_members,), float(self.ent_coef), device=self.device)
+        self._compiled_step: Any = None
+        if self.compile_update:
+            if self.compile_update == "reduce-overhead" and self.device.type != "cuda":
+                raise ValueError(
+                    f"compile_update='reduce-overhead' replays the gradient step as a CUDA graph and needs "
+                    f"device='cuda', got device={self.device.type!r}: use compile_update=True"
+                )
+            self._adam_plans = [AdamPlan(self.actor.optimizer, "actor"), AdamPlan(self.critic.optimizer, "critic")]
+            if self.ent_coef_optimizer is not None:
+                self._adam_plans.append(AdamPlan(self.ent_coef_optimizer, "entropy coefficient"))
+            self._critic_parameters = list(self.critic.parameters())
+            self._critic_target_parameters = list(self.critic_target.parameters())
+            self._compiled_step = compile_step(self._gradient_step_graph, self.compile_update)
 
     def _setup_learn(
         self,
@@ -270,34 +345,39 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
             self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
             return
 
-        logged: dict[str, list[th.Tensor]] = {}
-        for gradient_step in range(gradient_steps):
-            # SUNRISEReplayBuffer._get_samples gives the masks with SB3's samples
-            replay_data = cast(SUNRISEReplayBufferSamples, self.replay_buffer.sample(batch_size, env=self._vec_normalize_env))
-            step_values = self._gradient_step(replay_data, gradient_step)
-            for key, value in step_values.items():
-                logged.setdefault(key, []).append(value)
-            if target_update_due(self._n_updates, gradient_step, self.target_update_interval):
-                polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
-
+        if self._compiled_step is not None:
+            self._train_compiled(gradient_steps, batch_size)
+        else:
+            logged: dict[str, list[th.Tensor]] = {}
+            for gradient_step in range(gradient_steps):
+                step_values = self._gradient_step(self._sample(batch_size), gradient_step)
+                for key, value in step_values.items():
+                    logged.setdefault(key, []).append(value)
+                if target_update_due(self._n_updates, gradient_step, self.target_update_interval):
+                    polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
+            record_means(self.logger, logged)
         self._n_updates += gradient_steps
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
-        record_means(self.logger, logged)
 
-    def _gradient_step(self, replay_data: SUNRISEReplayBufferSamples, gradient_step: int = 0) -> dict[str, th.Tensor]:
-        """
-        One SAC update of every member on one replayed batch (``S`` samples), in SB3's SAC order: entropy
-        coefficients (their values before this step enter the other losses), critics, actors. The two draws of the
-        actors' Gaussian noise are, in this order, at the replayed states and at the next states, each of shape
-        ``(N, S, A)``.
+    def _sample(self, batch_size: int) -> SUNRISEReplayBufferSamples:
+        """A replayed batch with its bootstrap masks (``SUNRISEReplayBuffer._get_samples`` gives them)."""
+        return cast(SUNRISEReplayBufferSamples, self.replay_buffer.sample(batch_size, env=self._vec_normalize_env))
 
-        :param replay_data: the batch, with its bootstrap masks
-        :param gradient_step: the step's index within the current ``train()`` call, for error messages
-        :return: the step's means over members of SAC's logged quantities, and the mean backup weight and ensemble
-            standard deviation, as tensors
+    def _losses(
+        self,
+        observations: th.Tensor,
+        actions: th.Tensor,
+        next_observations: th.Tensor,
+        rewards: th.Tensor,
+        dones: th.Tensor,
+        masks: th.Tensor,
+    ) -> SUNRISELosses:
         """
-        masks = replay_data.masks.T  # (N, S)
-        actions_pi, log_prob = self.actor.action_log_prob(replay_data.observations)
+        The entropy coefficients' and critics' losses of every member on one batch (``masks``: ``(N, S)``), nothing
+        changed yet. The two draws of the actors' Gaussian noise are, in this order, at the replayed states and at the
+        next states, each of shape ``(N, S, A)``.
+        """
+        actions_pi, log_prob = self.actor.action_log_prob(observations)
         assert isinstance(self.target_entropy, float)
         ent_coef_loss = None
         if self.ent_coef_optimizer is not None and self.log_ent_coef is not None:
@@ -310,48 +390,161 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
 
         with th.no_grad():
             # Each member's next action, all target critics on them: (N, C, S)
-            next_actions, next_log_prob = self.actor.action_log_prob(replay_data.next_observations)
-            next_q_values = self.critic_target.q_values(replay_data.next_observations, next_actions)
+            next_actions, next_log_prob = self.actor.action_log_prob(next_observations)
+            next_q_values = self.critic_target.q_values(next_observations, next_actions)
             std_q = ensemble_std(next_q_values)
             weights = backup_weight(std_q, self.backup_temperature)
             # Member m's clipped double-Q soft target y_m, (N, S)
             next_values = next_q_values.min(dim=1).values - ent_coef.unsqueeze(1) * next_log_prob
-            target_q_values = replay_data.rewards.T + (1 - replay_data.dones.T) * self.gamma * next_values
-        current_q_values = self.critic.q_values(replay_data.observations, replay_data.actions)
+            target_q_values = rewards.T + (1 - dones.T) * self.gamma * next_values
+        current_q_values = self.critic.q_values(observations, actions)
         critic_loss = weighted_bellman_loss(current_q_values, target_q_values, weights, masks).sum()
+        return SUNRISELosses(actions_pi, log_prob, ent_coef, ent_coef_loss, target_q_values, critic_loss, weights, std_q)
 
+    def _actor_loss(self, observations: th.Tensor, losses: SUNRISELosses, masks: th.Tensor) -> th.Tensor:
+        """Each member's actor against the minimum of its own (updated) critics, summed over members."""
+        q_values_pi = self.critic.q_values(observations, losses.actions_pi).min(dim=1).values
+        return masked_mean(losses.ent_coef.unsqueeze(1) * losses.log_prob - q_values_pi, masks).sum()
+
+    def _logged(self, losses: SUNRISELosses, actor_loss: th.Tensor) -> dict[str, th.Tensor]:
+        """The step's means over members of SAC's logged quantities, the mean backup weight and ensemble std."""
+        values = dict(
+            ent_coef=losses.ent_coef.mean(),
+            critic_loss=losses.critic_loss.detach() / self.n_members,
+            actor_loss=actor_loss.detach() / self.n_members,
+            backup_weight=losses.weights.mean(),
+            ensemble_std=losses.std_q.mean(),
+        )
+        if losses.ent_coef_loss is not None:
+            values["ent_coef_loss"] = losses.ent_coef_loss.detach() / self.n_members
+        return values
+
+    def _gradient_step(self, replay_data: SUNRISEReplayBufferSamples, gradient_step: int = 0) -> dict[str, th.Tensor]:
+        """
+        One SAC update of every member on one replayed batch (``S`` samples), in SB3's SAC order: entropy
+        coefficients (their values before this step enter the other losses), critics, actors.
+
+        :param replay_data: the batch, with its bootstrap masks
+        :param gradient_step: the step's index within the current ``train()`` call, for error messages
+        :return: the values of :meth:`_logged`, as tensors
+        """
+        masks = replay_data.masks.T  # (N, S)
+        losses = self._losses(
+            replay_data.observations,
+            replay_data.actions,
+            replay_data.next_observations,
+            replay_data.rewards,
+            replay_data.dones,
+            masks,
+        )
         # Nothing has changed yet: stop here if a value is not finite (a cause named before its consequences)
-        quantities = {"entropy coefficient": ent_coef, "TD target": target_q_values, "critic loss": critic_loss}
-        if ent_coef_loss is not None:
-            quantities["entropy coefficient loss"] = ent_coef_loss
+        quantities = {
+            "entropy coefficient": losses.ent_coef,
+            "TD target": losses.target_q_values,
+            "critic loss": losses.critic_loss,
+        }
+        if losses.ent_coef_loss is not None:
+            quantities["entropy coefficient loss"] = losses.ent_coef_loss
         self._check_finite(gradient_step, quantities)
-        if ent_coef_loss is not None and self.ent_coef_optimizer is not None:
+        if losses.ent_coef_loss is not None and self.ent_coef_optimizer is not None:
             self.ent_coef_optimizer.zero_grad()
-            ent_coef_loss.backward()
+            losses.ent_coef_loss.backward()
             self.ent_coef_optimizer.step()
         self.critic.optimizer.zero_grad()
-        critic_loss.backward()
+        losses.critic_loss.backward()
         self.critic.optimizer.step()
 
-        # Each member's actor against the minimum of its own (updated) critics
-        q_values_pi = self.critic.q_values(replay_data.observations, actions_pi).min(dim=1).values
-        actor_loss = masked_mean(ent_coef.unsqueeze(1) * log_prob - q_values_pi, masks).sum()
+        actor_loss = self._actor_loss(replay_data.observations, losses, masks)
         self._check_finite(gradient_step, {"actor loss": actor_loss})
         self.actor.optimizer.zero_grad()
         # Gradients for the actors only: the critics' weight gradients would be computed and thrown away
         actor_loss.backward(inputs=list(self.actor.parameters()))
         self.actor.optimizer.step()
+        return self._logged(losses, actor_loss)
 
-        values = dict(
-            ent_coef=ent_coef.mean(),
-            critic_loss=critic_loss.detach() / self.n_members,
-            actor_loss=actor_loss.detach() / self.n_members,
-            backup_weight=weights.mean(),
-            ensemble_std=std_q.mean(),
+    def _train_compiled(self, gradient_steps: int, batch_size: int) -> None:
+        """
+        :meth:`train`'s steps through the compiled :meth:`_gradient_step_graph`, read from the device once, after the
+        last step. A non-finite value raises ``FloatingPointError`` naming the first one; its step and those after it
+        changed nothing.
+        """
+        states = [plan.state() for plan in self._adam_plans]
+        learning_rates = th.tensor([plan.optimizer.param_groups[0]["lr"] for plan in self._adam_plans], device=self.device)
+        due = {flag: th.tensor(flag, device=self.device) for flag in (False, True)}
+
+        def step(gradient_step: int, healthy: th.Tensor) -> CompiledStepOutput:
+            replay_data = self._sample(batch_size)
+            return self._compiled_step(
+                replay_data.observations,
+                replay_data.actions,
+                replay_data.next_observations,
+                replay_data.rewards,
+                replay_data.dones,
+                replay_data.masks.T,
+                learning_rates=learning_rates,
+                target_update=due[target_update_due(self._n_updates, gradient_step, self.target_update_interval)],
+                healthy=healthy,
+                states=states,
+            )
+
+        outputs = run_steps(step, gradient_steps, self.compile_update == "reduce-overhead", self.device)
+        logged, _ = read_steps(outputs, COMPILED_QUANTITIES, partial(gradient_step_context, self), th.zeros(0))
+        for name, value in zip(LOGGED, logged, strict=False):
+            self.logger.record(f"train/{name}", value)
+
+    def _gradient_step_graph(
+        self,
+        observations: th.Tensor,
+        actions: th.Tensor,
+        next_observations: th.Tensor,
+        rewards: th.Tensor,
+        dones: th.Tensor,
+        masks: th.Tensor,
+        *,
+        learning_rates: th.Tensor,
+        target_update: th.Tensor,
+        healthy: th.Tensor,
+        states: list[list[tuple[th.Tensor, th.Tensor, th.Tensor]]],
+    ) -> CompiledStepOutput:
+        """
+        :meth:`_gradient_step` and the target update as one graph (``compile_update``): gradients from
+        ``torch.autograd.grad``, Adam steps and the target update masked by ``healthy`` and by whether this step's
+        values were finite, nothing read back.
+
+        :param learning_rates: each optimizer's rate, in ``_adam_plans`` order (actor, critics, entropy coefficients)
+        :param target_update: whether the target critics are updated after this step, a boolean scalar tensor
+        :param healthy: whether every earlier step of the ``train()`` call had only finite values
+        :param states: each optimizer's Adam state (:meth:`AdamPlan.state`), in ``_adam_plans`` order
+        """
+        actor_plan, critic_plan = self._adam_plans[:2]
+        losses = self._losses(observations, actions, next_observations, rewards, dones, masks)
+        critic_grads = th.autograd.grad(losses.critic_loss, critic_plan.params)
+        entropy_grads: tuple[th.Tensor, ...] = ()
+        if losses.ent_coef_loss is not None:
+            entropy_grads = th.autograd.grad(losses.ent_coef_loss, self._adam_plans[2].params)
+        finite = [
+            th.isfinite(losses.ent_coef).all(),
+            th.isfinite(losses.target_q_values).all(),
+            th.isfinite(losses.critic_loss),
+            th.isfinite(losses.ent_coef_loss) if losses.ent_coef_loss is not None else healthy,
+            all_finite(critic_grads),
+            all_finite(entropy_grads) if entropy_grads else healthy,
+        ]
+        apply = healthy & th.stack(finite).all()
+        if losses.ent_coef_loss is not None:
+            masked_adam(self._adam_plans[2], entropy_grads, states[2], [learning_rates[2]], apply)
+        masked_adam(critic_plan, critic_grads, states[1], [learning_rates[1]] * len(critic_plan.settings), apply)
+        actor_loss = self._actor_loss(observations, losses, masks)
+        actor_grads = th.autograd.grad(actor_loss, actor_plan.params)
+        finite += [th.isfinite(actor_loss), all_finite(actor_grads)]
+        apply_actor = apply & finite[-2] & finite[-1]
+        masked_adam(
+            actor_plan, actor_grads, states[0], [learning_rates[0]] * len(self.actor.optimizer.param_groups), apply_actor
         )
-        if ent_coef_loss is not None:
-            values["ent_coef_loss"] = ent_coef_loss.detach() / self.n_members
-        return values
+        masked_polyak(self._critic_target_parameters, self._critic_parameters, self.tau, apply_actor & target_update)
+        return CompiledStepOutput(
+            healthy=apply_actor, finite=th.stack(finite), logged=th.stack(list(self._logged(losses, actor_loss).values()))
+        )
 
     def _check_finite(self, gradient_step: int, quantities: dict[str, th.Tensor]) -> None:
         """
@@ -368,7 +561,16 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
         return super()._init_callback(with_env_step_check(callback), progress_bar)
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "actor", "critic", "critic_target"]
+        return [
+            *super()._excluded_save_params(),
+            "actor",
+            "critic",
+            "critic_target",
+            "_compiled_step",
+            "_adam_plans",
+            "_critic_parameters",
+            "_critic_target_parameters",
+        ]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts = ["policy", "actor.optimizer", "critic.optimizer"]
