@@ -52,12 +52,7 @@ def _graphs(model: SERASAC, batch_size: int) -> tuple[int, int]:
     batch = model.replay_buffer.sample(batch_size)  # type: ignore[union-attr]
     return count_graph_breaks(
         model._gradient_step,
-        batch.observations,
-        batch.actions,
-        batch.next_observations,
-        batch.rewards,
-        batch.dones,
-        model.gamma,
+        batch,
         learning_rates=th.full((3,), 3e-4, device=model.device),
         target_update=th.tensor(True, device=model.device),
         healthy=th.tensor(False, device=model.device),  # masks every update: the trace changes nothing

@@ -16,6 +16,7 @@ import torch as th
 from torch.utils import _pytree
 
 from sb3_sera.common.checks import NON_FINITE_ADVICE
+from sb3_sera.common.off_policy import target_update_due
 
 #: ``compile_update``'s values: off, on (one graph per gradient step), or on with CUDA graphs (a GPU is needed)
 CompileMode = Literal[False, True, "reduce-overhead"]
@@ -40,9 +41,6 @@ class StepOutput(Protocol):
         """The step's values to log, ``(L,)``."""
 
 
-_Step = TypeVar("_Step", bound=StepOutput)
-
-
 def compile_step(step: Callable[..., _Output], mode: CompileMode) -> Callable[..., _Output]:
     """
     ``step`` through ``torch.compile`` as one graph (``fullgraph=True``: a graph break is an error), static shapes,
@@ -61,6 +59,25 @@ def compile_step(step: Callable[..., _Output], mode: CompileMode) -> Callable[..
             return compiled(*args, **kwargs)
 
     return run
+
+
+def compile_model_step(
+    model: Any, step: Callable[..., _Output], mode: CompileMode
+) -> tuple[list["AdamPlan"], Callable[..., _Output]]:
+    """
+    A model's gradient step compiled (:func:`compile_step`), and the Adam plans of its optimizers: the actor's, the
+    critic's and, when the entropy coefficient is learned, its own (in this order; ``model.actor.optimizer``,
+    ``model.critic.optimizer``, ``model.ent_coef_optimizer``). ``"reduce-overhead"`` needs a CUDA device.
+    """
+    if mode == "reduce-overhead" and model.device.type != "cuda":
+        raise ValueError(
+            f"compile_update='reduce-overhead' replays the gradient step as a CUDA graph and needs device='cuda', got "
+            f"device={model.device.type!r}: use compile_update=True"
+        )
+    plans = [AdamPlan(model.actor.optimizer, "actor"), AdamPlan(model.critic.optimizer, "critic")]
+    if model.ent_coef_optimizer is not None:
+        plans.append(AdamPlan(model.ent_coef_optimizer, "entropy coefficient"))
+    return plans, compile_step(step, mode)
 
 
 class AdamPlan:
@@ -171,20 +188,32 @@ def count_graph_breaks(step: Callable[..., Any], *args: Any, **kwargs: Any) -> t
     return explanation.graph_count, explanation.graph_break_count
 
 
-def run_steps(
-    step: Callable[[int, th.Tensor], _Step], gradient_steps: int, cuda_graphs: bool, device: th.device
-) -> list[_Step]:
+def run_steps(model: Any, sample: Callable[[], Any], learning_rates: th.Tensor, gradient_steps: int) -> list[Any]:
     """
-    Run ``step(gradient_step, healthy)`` ``gradient_steps`` times, each given the previous one's ``healthy`` flag (so
-    that after a non-finite value nothing changes), without reading anything back. With CUDA graphs each replay
+    Run ``model._compiled_step`` (its :func:`compile_model_step`) ``gradient_steps`` times, each on a batch from
+    ``sample()``, without reading anything back: each step gets the Adam states of ``model._adam_plans``, the
+    learning rates, whether the targets are updated after it (:func:`~sb3_sera.common.off_policy.target_update_due`)
+    and the previous step's ``healthy`` flag (after a non-finite value nothing changes). With CUDA graphs each replay
     overwrites the previous one's outputs: they are copied.
+
+    :return: the steps' outputs (:class:`StepOutput`)
     """
-    healthy = th.ones((), dtype=th.bool, device=device)
+    states = [plan.state() for plan in model._adam_plans]
+    due = {flag: th.tensor(flag, device=model.device) for flag in (False, True)}
+    cuda_graphs = model.compile_update == "reduce-overhead"
+    healthy = th.ones((), dtype=th.bool, device=model.device)
     outputs = []
     for gradient_step in range(gradient_steps):
+        batch = sample()
         if cuda_graphs:
             th.compiler.cudagraph_mark_step_begin()
-        output = step(gradient_step, healthy)
+        output = model._compiled_step(
+            batch,
+            learning_rates=learning_rates,
+            target_update=due[target_update_due(model._n_updates, gradient_step, model.target_update_interval)],
+            healthy=healthy,
+            states=states,
+        )
         if cuda_graphs:
             output = _pytree.tree_map(th.clone, output)
         healthy = output.healthy

@@ -25,7 +25,11 @@ from typing import Any
 
 import yaml
 
-from sb3_sera.experiments.runs import RunResult, RunSpec, algorithm_classes, check_specs, check_task, execute, make_spec
+from sb3_sera.experiments.backends import execute
+from sb3_sera.experiments.engine import check_specs
+from sb3_sera.experiments.records import RunResult
+from sb3_sera.experiments.registry import algorithm_classes, check_task
+from sb3_sera.experiments.specs import RunSpec, make_spec
 
 GRID_KEYS = {"algorithms", "tasks", "seeds", "n_timesteps", "eval_freq", "eval_episodes", "hyperparams"}
 
@@ -126,11 +130,11 @@ def load_grid(path: str | Path, num_threads: int | None = 1, device: str = "auto
             for name, (algo, overrides) in variants.items():
                 try:
                     spec = make_spec(
-                        name,
-                        algo,
-                        task,
-                        seed,
-                        n_timesteps,
+                        variant=name,
+                        algo=algo,
+                        env_id=task,
+                        seed=seed,
+                        n_timesteps=n_timesteps,
                         overrides=overrides,
                         eval_freq=eval_freq,
                         n_eval_episodes=episodes,

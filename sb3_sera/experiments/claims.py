@@ -43,7 +43,7 @@ import numpy as np
 
 from sb3_sera.experiments import stats
 from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
-from sb3_sera.experiments.runs import NPZ_ERRORS, RunResult
+from sb3_sera.experiments.records import NPZ_ERRORS, RunResult
 
 #: Runs each side needs before an interval or a verdict is given
 MIN_RUNS = 3
@@ -162,58 +162,58 @@ NO_LR = ("sera_nolr", "sera_nolr_matched")
 
 CLAIMS = (
     Claim(
-        "Fig. 5",
-        "the adaptive step size decorrelates the critics' TD errors",
-        "td_error_corr at the last evaluation",
-        last_diagnostic("td_error_corr"),
+        figure="Fig. 5",
+        text="the adaptive step size decorrelates the critics' TD errors",
+        summary_name="td_error_corr at the last evaluation",
+        summary=last_diagnostic("td_error_corr"),
         lower=True,
         baselines=NO_LR,
     ),
     Claim(
-        "Fig. 5",
-        "the adaptive step size decorrelates the critics' errors against Monte Carlo returns",
-        "mc_error_corr at the last evaluation",
-        last_diagnostic("mc_error_corr"),
+        figure="Fig. 5",
+        text="the adaptive step size decorrelates the critics' errors against Monte Carlo returns",
+        summary_name="mc_error_corr at the last evaluation",
+        summary=last_diagnostic("mc_error_corr"),
         lower=True,
         baselines=NO_LR,
     ),
     Claim(
-        "Fig. 5",
-        "the adaptive step size keeps the critics apart",
-        "relative_disagreement at the last evaluation",
-        relative_disagreement,
+        figure="Fig. 5",
+        text="the adaptive step size keeps the critics apart",
+        summary_name="relative_disagreement at the last evaluation",
+        summary=relative_disagreement,
         lower=False,
         baselines=NO_LR,
     ),
     Claim(
-        "Fig. 5",
-        "with a fixed step size some critics become near duplicates",
-        "closest_pair at the last evaluation",
-        closest_pair,
+        figure="Fig. 5",
+        text="with a fixed step size some critics become near duplicates",
+        summary_name="closest_pair at the last evaluation",
+        summary=closest_pair,
         lower=False,
         baselines=NO_LR,
     ),
     Claim(
-        "Fig. 4c",
-        "SERA's TD target has the lowest normalised variance",
-        "Var(y) / mean(y^2), second half of training",
-        target_relative_variance,
+        figure="Fig. 4c",
+        text="SERA's TD target has the lowest normalised variance",
+        summary_name="Var(y) / mean(y^2), second half of training",
+        summary=target_relative_variance,
         lower=True,
         baselines=("sac", "ensemble_mean", "masac"),
     ),
     Claim(
-        "Fig. 4a",
-        "SERA has the smallest initial-state bias",
-        "sum abs(V(s0) - G) / sum abs(G) after learning_starts",
-        relative_bias,
+        figure="Fig. 4a",
+        text="SERA has the smallest initial-state bias",
+        summary_name="sum abs(V(s0) - G) / sum abs(G) after learning_starts",
+        summary=relative_bias,
         lower=True,
         baselines=("sac", "ensemble_mean", "sera_nolr", "masac", "matd3", "maddpg"),
     ),
     Claim(
-        "Fig. 4b",
-        "each part of SERA adds to its learning",
-        "normalized AUC",
-        auc,
+        figure="Fig. 4b",
+        text="each part of SERA adds to its learning",
+        summary_name="normalized AUC",
+        summary=auc,
         lower=False,
         baselines=("sera_nolr", "sera_nolr_matched", "sera_median", "ensemble_mean"),
     ),

@@ -10,7 +10,8 @@ import yaml
 
 from sb3_sera.common.mujoco_log import route_mujoco_warnings
 from sb3_sera.experiments import bench, compare, ledger, report, stats, zoo
-from sb3_sera.experiments.runs import Interrupted, RunResult, default_threads, env_name
+from sb3_sera.experiments.backends import Interrupted, default_threads
+from sb3_sera.experiments.records import RunResult, env_name
 
 
 def _print_report(results: list[RunResult], out: str, name: str, reps: int) -> None:
@@ -36,7 +37,7 @@ def _compare(args: argparse.Namespace) -> None:
         num_threads=args.num_threads,
         device=args.device,
     )
-    _print_report(results, args.out, env_name(args.env), args.reps)
+    _print_report(results, out=args.out, name=env_name(args.env), reps=args.reps)
 
 
 def _bench(args: argparse.Namespace) -> None:
@@ -45,7 +46,7 @@ def _bench(args: argparse.Namespace) -> None:
     results = bench.run_grid(
         args.grid, args.out, n_jobs=n_jobs, ray_address=args.ray_address, num_threads=threads, device=args.device
     )
-    _print_report(results, args.out, Path(args.grid).stem, args.reps)
+    _print_report(results, out=args.out, name=Path(args.grid).stem, reps=args.reps)
 
 
 def _report(args: argparse.Namespace) -> None:

@@ -1,7 +1,7 @@
 """
 Train several algorithms on one task for several seeds, each with the task's hyperparameters from
 ``hyperparams/<algo>.yml`` (as ``sb3-sera train``) and the caller's overrides; the runs are recorded by the run
-engine (:mod:`sb3_sera.experiments.runs`) and summarized by the report (:mod:`sb3_sera.experiments.report`).
+engine (:mod:`sb3_sera.experiments.engine`) and summarized by the report (:mod:`sb3_sera.experiments.report`).
 """
 
 import ast
@@ -10,15 +10,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from sb3_sera.experiments.runs import (
-    RunResult,
-    algorithm_classes,
-    check_specs,
-    check_task,
-    default_threads,
-    execute,
-    make_spec,
-)
+from sb3_sera.experiments.backends import default_threads, execute
+from sb3_sera.experiments.engine import check_specs
+from sb3_sera.experiments.records import RunResult
+from sb3_sera.experiments.registry import algorithm_classes, check_task
+from sb3_sera.experiments.specs import make_spec
 
 #: Default quick comparison: a task that SAC solves in a few thousand steps
 DEFAULT_ENV = "Pendulum-v1"
@@ -96,16 +92,16 @@ def run_comparison(
     threads = default_threads(n_jobs) if num_threads is None else num_threads
     specs = [
         make_spec(
-            algo,
-            algo,
-            env_id,
-            seed,
-            n_timesteps,
-            {**(params or {}), **(algo_params or {}).get(algo, {})},
-            eval_freq,
-            n_eval_episodes,
-            threads,
-            device,
+            variant=algo,
+            algo=algo,
+            env_id=env_id,
+            seed=seed,
+            n_timesteps=n_timesteps,
+            overrides={**(params or {}), **(algo_params or {}).get(algo, {})},
+            eval_freq=eval_freq,
+            n_eval_episodes=n_eval_episodes,
+            num_threads=threads,
+            device=device,
         )
         for algo in algos
         for seed in seeds

@@ -25,8 +25,8 @@ from typing import Any
 import yaml
 
 from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
+from sb3_sera.experiments.records import RESULT_FILE, RunResult, env_name, read_record, run_ids
 from sb3_sera.experiments.report import Skipped, group_runs, load_runs, run_folders, section_table, write_report
-from sb3_sera.experiments.runs import RESULT_FILE, RunResult, env_name, read_record, run_ids
 
 #: The ledger's folder, at the top of the repository
 LEDGER_DIR = "results"

@@ -75,7 +75,7 @@ def sample_serasac_params(trial: Any, n_actions: int, n_envs: int, additional_ar
     """rl-zoo3's SAC search space (network size for the actor only) plus SERA's own knobs."""
     from rl_zoo3.hyperparams_opt import sample_sac_params
 
-    hyperparams = _actor_only(sample_sac_params(trial, n_actions, n_envs, additional_args))
+    hyperparams = _actor_only(sample_sac_params(trial, n_actions=n_actions, n_envs=n_envs, additional_args=additional_args))
     hyperparams.update(
         sera_alpha=trial.suggest_float("sera_alpha", 0.0, 1.0),
         sera_temperature=trial.suggest_float("sera_temperature", 0.1, 10.0, log=True),
@@ -89,7 +89,7 @@ def sample_sunrise_params(trial: Any, n_actions: int, n_envs: int, additional_ar
     """rl-zoo3's SAC search space plus SUNRISE's ensemble size N, backup temperature T and UCB lambda."""
     from rl_zoo3.hyperparams_opt import sample_sac_params
 
-    hyperparams = sample_sac_params(trial, n_actions, n_envs, additional_args)
+    hyperparams = sample_sac_params(trial, n_actions=n_actions, n_envs=n_envs, additional_args=additional_args)
     hyperparams.update(
         n_members=trial.suggest_int("n_members", 2, 10),
         backup_temperature=trial.suggest_float("backup_temperature", 1.0, 50.0, log=True),
@@ -102,7 +102,7 @@ def sample_iet_params(trial: Any, n_actions: int, n_envs: int, additional_args: 
     """rl-zoo3's SAC search space (its network size for the critics) plus IET's latent size."""
     from rl_zoo3.hyperparams_opt import sample_sac_params
 
-    hyperparams = sample_sac_params(trial, n_actions, n_envs, additional_args)
+    hyperparams = sample_sac_params(trial, n_actions=n_actions, n_envs=n_envs, additional_args=additional_args)
     hyperparams["latent_dim"] = trial.suggest_categorical("latent_dim", [5, 10, 16])
     return hyperparams
 

@@ -28,10 +28,9 @@ from sb3_sera.common.checks import (
 )
 from sb3_sera.common.compiled import (
     COMPILE_MODES,
-    AdamPlan,
     CompileMode,
     all_finite,
-    compile_step,
+    compile_model_step,
     masked_adam,
     masked_polyak,
     read_steps,
@@ -359,15 +358,7 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         self._critic_target_parameters: list[th.Tensor] = list(self.critic_target.parameters())
         self._compiled_step: Callable[..., CompiledStepOutput] | None = None
         if self.compile_update:
-            if self.compile_update == "reduce-overhead" and self.device.type != "cuda":
-                raise ValueError(
-                    f"compile_update='reduce-overhead' replays the gradient step as a CUDA graph and needs "
-                    f"device='cuda', got device={self.device.type!r}: use compile_update=True"
-                )
-            self._adam_plans = [AdamPlan(self.actor.optimizer, "actor"), AdamPlan(self.critic.optimizer, "critic")]
-            if self.ent_coef_optimizer is not None:
-                self._adam_plans.append(AdamPlan(self.ent_coef_optimizer, "entropy coefficient"))
-            self._compiled_step = compile_step(self._gradient_step, self.compile_update)
+            self._adam_plans, self._compiled_step = compile_model_step(self, self._gradient_step, self.compile_update)
 
     def _update_critic_learning_rates(self, rates: list[float] | None) -> list[float]:
         """
@@ -396,25 +387,19 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         # Non-finite rewards and observations are refused at the env step that gives them
         return super()._init_callback(with_env_step_check(callback), progress_bar)
 
-    def _critic_update(
-        self,
-        observations: PyTorchObs,
-        actions: th.Tensor,
-        next_observations: PyTorchObs,
-        rewards: th.Tensor,
-        dones: th.Tensor,
-        discounts: th.Tensor | float,
-        next_actions: th.Tensor,
-        next_log_prob: th.Tensor,
-        ent_coef: th.Tensor,
-    ) -> CriticUpdate:
+    def _critic_step_values(self, replay_data: ReplayBufferSamples, ent_coef: th.Tensor) -> CriticUpdate:
         """
-        The tensor code of the critic update: TD target from the aggregated target critics, the online critics'
-        values and loss, and the step-size update (computed, not yet committed).
+        The critic update on a batch (Algorithm 2, lines 5-16), computed, nothing changed yet: TD target from the
+        aggregated target critics at next actions drawn from the current actor, the online critics' values and loss,
+        and the step-size update (not yet committed).
         """
+        # For n-step replay, the discount factor is gamma**n_steps (when no early termination)
+        discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
         with th.no_grad():
+            next_actions, next_log_prob = self.actor.action_log_prob(replay_data.next_observations)
+            next_log_prob = next_log_prob.reshape(-1, 1)
             # Target critics' values q_i(s', a'), shape (S, K), aggregated to one target per sample
-            next_q_values = self.critic_target.q_values(next_observations, next_actions)
+            next_q_values = self.critic_target.q_values(replay_data.next_observations, next_actions)
             next_q_aggregate = aggregate_target(
                 next_q_values,
                 self.target_aggregation,
@@ -424,14 +409,21 @@ class SERASAC(NamedRuns, Capabilities, SAC):
                 temperature_mode=self.sera_temperature_mode,
             ).unsqueeze(1)
             next_q = next_q_aggregate - ent_coef * next_log_prob
-            target_q_values = rewards + (1 - dones) * discounts * next_q
+            target_q_values = replay_data.rewards + (1 - replay_data.dones) * discounts * next_q
         # Each online critic regresses on the same target: delta_i = y - Q_i(s, a), shape (S, K)
-        current_q_values = self.critic.q_values(observations, actions)
+        current_q_values = self.critic.q_values(replay_data.observations, replay_data.actions)
         td_errors = target_q_values - current_q_values
         critic_loss = 0.5 * td_errors.pow(2).mean(dim=0).sum()
         # Variance-adaptive step size from detached tensors (stored by the caller once checked)
         update = self.step_size.compute(td_errors.detach(), next_q_values - next_q_aggregate)
-        return CriticUpdate(next_q_values, next_q_aggregate, target_q_values, current_q_values, critic_loss, update)
+        return CriticUpdate(
+            next_q_values=next_q_values,
+            next_q_aggregate=next_q_aggregate,
+            target_q_values=target_q_values,
+            current_q_values=current_q_values,
+            critic_loss=critic_loss,
+            step_size=update,
+        )
 
     def td_targets(self, replay_data: ReplayBufferSamples) -> tuple[th.Tensor, th.Tensor]:
         """
@@ -507,8 +499,6 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         once, after the last step. A non-finite value raises ``FloatingPointError`` naming the first one; its step
         and those after it changed nothing.
         """
-        assert self._compiled_step is not None
-        states = [plan.state() for plan in self._adam_plans]
         entropy_rate = self.ent_coef_optimizer.param_groups[0]["lr"] if self.ent_coef_optimizer is not None else 0.0
         learning_rates = th.tensor(
             [
@@ -518,27 +508,13 @@ class SERASAC(NamedRuns, Capabilities, SAC):
             ],
             device=self.device,
         )
-        due = {flag: th.tensor(flag, device=self.device) for flag in (False, True)}
 
-        def step(gradient_step: int, healthy: th.Tensor) -> CompiledStepOutput:
-            assert self._compiled_step is not None
-            replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
+        def sample() -> ReplayBufferSamples:
             if self.use_sde:
                 self.actor.reset_noise()
-            return self._compiled_step(
-                replay_data.observations,
-                replay_data.actions,
-                replay_data.next_observations,
-                replay_data.rewards,
-                replay_data.dones,
-                _discounts(replay_data, self.gamma),
-                learning_rates=learning_rates,
-                target_update=due[target_update_due(self._n_updates, gradient_step, self.target_update_interval)],
-                healthy=healthy,
-                states=states,
-            )
+            return self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
 
-        outputs = run_steps(step, gradient_steps, self.compile_update == "reduce-overhead", self.device)
+        outputs: list[CompiledStepOutput] = run_steps(self, sample, learning_rates, gradient_steps)
         logged, critic_rates = read_steps(
             outputs, COMPILED_QUANTITIES, partial(gradient_step_context, self), outputs[-1].critic_rates
         )
@@ -551,12 +527,7 @@ class SERASAC(NamedRuns, Capabilities, SAC):
 
     def _gradient_step(
         self,
-        observations: PyTorchObs,
-        actions: th.Tensor,
-        next_observations: PyTorchObs,
-        rewards: th.Tensor,
-        dones: th.Tensor,
-        discounts: th.Tensor | float,
+        replay_data: ReplayBufferSamples,
         *,
         learning_rates: th.Tensor,
         target_update: th.Tensor,
@@ -574,10 +545,10 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         :param states: each optimizer's Adam state (:meth:`AdamPlan.state`), in ``_adam_plans`` order
         """
         actor_plan, critic_plan = self._adam_plans[:2]
-        actions_pi, log_prob = self.actor.action_log_prob(observations)
+        actions_pi, log_prob = self.actor.action_log_prob(replay_data.observations)
         log_prob = log_prob.reshape(-1, 1)
         ent_coef = self._entropy_coefficient()
-        critic = self._critic_values(observations, actions, next_observations, rewards, dones, discounts, ent_coef)
+        critic = self._critic_step_values(replay_data, ent_coef)
         target_entropy, ent_coef_loss = self._entropy_target(critic.current_q_values, log_prob)
         critic_grads = th.autograd.grad(critic.critic_loss, critic_plan.params)
         finite = [
@@ -605,7 +576,7 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         ]
         masked_adam(critic_plan, critic_grads, states[1], group_rates, apply)
         # The actor against the updated critics, the median critic's value by gather (static shapes)
-        actor_loss = (ent_coef * log_prob - self._actor_q_value_gathered(observations, actions_pi)).mean()
+        actor_loss = (ent_coef * log_prob - self._actor_q_value_gathered(replay_data.observations, actions_pi)).mean()
         actor_grads = th.autograd.grad(actor_loss, actor_plan.params)
         finite += [th.isfinite(actor_loss), all_finite(actor_grads)]
         apply_actor = apply & finite[-2] & finite[-1]
@@ -615,7 +586,7 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         logged = [ent_coef.reshape(()), critic.critic_loss.detach(), actor_loss.detach()]
         if ent_coef_loss is not None:
             logged.append(ent_coef_loss.detach())
-        detached = CriticUpdate(*critic[:3], critic.current_q_values.detach(), critic.critic_loss.detach(), critic.step_size)
+        detached = critic._replace(current_q_values=critic.current_q_values.detach(), critic_loss=critic.critic_loss.detach())
         return CompiledStepOutput(
             healthy=apply_actor,
             finite=th.stack(finite),
@@ -640,43 +611,6 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         if self.ent_coef_optimizer is not None and self.log_ent_coef is not None:
             return th.exp(self.log_ent_coef.detach())
         return self.ent_coef_tensor
-
-    def _critic_step_values(self, replay_data: ReplayBufferSamples, ent_coef: th.Tensor) -> CriticUpdate:
-        """The critic update on a batch (Algorithm 2, lines 5-16), computed, nothing changed yet."""
-        return self._critic_values(
-            replay_data.observations,
-            replay_data.actions,
-            replay_data.next_observations,
-            replay_data.rewards,
-            replay_data.dones,
-            _discounts(replay_data, self.gamma),
-            ent_coef,
-        )
-
-    def _critic_values(
-        self,
-        observations: PyTorchObs,
-        actions: th.Tensor,
-        next_observations: PyTorchObs,
-        rewards: th.Tensor,
-        dones: th.Tensor,
-        discounts: th.Tensor | float,
-        ent_coef: th.Tensor,
-    ) -> CriticUpdate:
-        """:meth:`_critic_update` at next actions drawn from the current actor."""
-        with th.no_grad():
-            next_actions, next_log_prob = self.actor.action_log_prob(next_observations)
-        return self._critic_update(
-            observations,
-            actions,
-            next_observations,
-            rewards,
-            dones,
-            discounts,
-            next_actions,
-            next_log_prob.reshape(-1, 1),
-            ent_coef,
-        )
 
     def _entropy_target(self, current_q_values: th.Tensor, log_prob: th.Tensor) -> tuple[th.Tensor | float, th.Tensor | None]:
         """
@@ -834,11 +768,6 @@ class SERASAC(NamedRuns, Capabilities, SAC):
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts, saved_pytorch_variables = super()._get_torch_save_params()
         return [*state_dicts, "step_size"], saved_pytorch_variables
-
-
-def _discounts(replay_data: ReplayBufferSamples, gamma: float) -> th.Tensor | float:
-    """The discount of each replayed transition: ``gamma ** n_steps`` for n-step replay (when no early end), else gamma."""
-    return replay_data.discounts if replay_data.discounts is not None else gamma
 
 
 def _check_sac_hyperparameters(

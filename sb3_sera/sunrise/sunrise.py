@@ -29,10 +29,9 @@ from sb3_sera.common.checks import (
 )
 from sb3_sera.common.compiled import (
     COMPILE_MODES,
-    AdamPlan,
     CompileMode,
     all_finite,
-    compile_step,
+    compile_model_step,
     masked_adam,
     masked_polyak,
     read_steps,
@@ -81,6 +80,8 @@ class SUNRISELosses(NamedTuple):
     #: The backup weights ``(S,)`` and the ensemble's standard deviation ``(S,)``
     weights: th.Tensor
     std_q: th.Tensor
+    #: Each member's bootstrap mask of the batch, ``(N, S)``
+    masks: th.Tensor
 
 
 class CompiledStepOutput(NamedTuple):
@@ -283,17 +284,9 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
             self.ent_coef_tensor = th.full((self.n_members,), float(self.ent_coef), device=self.device)
         self._compiled_step: Any = None
         if self.compile_update:
-            if self.compile_update == "reduce-overhead" and self.device.type != "cuda":
-                raise ValueError(
-                    f"compile_update='reduce-overhead' replays the gradient step as a CUDA graph and needs "
-                    f"device='cuda', got device={self.device.type!r}: use compile_update=True"
-                )
-            self._adam_plans = [AdamPlan(self.actor.optimizer, "actor"), AdamPlan(self.critic.optimizer, "critic")]
-            if self.ent_coef_optimizer is not None:
-                self._adam_plans.append(AdamPlan(self.ent_coef_optimizer, "entropy coefficient"))
+            self._adam_plans, self._compiled_step = compile_model_step(self, self._gradient_step_graph, self.compile_update)
             self._critic_parameters = list(self.critic.parameters())
             self._critic_target_parameters = list(self.critic_target.parameters())
-            self._compiled_step = compile_step(self._gradient_step_graph, self.compile_update)
 
     def _setup_learn(
         self,
@@ -363,21 +356,14 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
         """A replayed batch with its bootstrap masks (``SUNRISEReplayBuffer._get_samples`` gives them)."""
         return cast(SUNRISEReplayBufferSamples, self.replay_buffer.sample(batch_size, env=self._vec_normalize_env))
 
-    def _losses(
-        self,
-        observations: th.Tensor,
-        actions: th.Tensor,
-        next_observations: th.Tensor,
-        rewards: th.Tensor,
-        dones: th.Tensor,
-        masks: th.Tensor,
-    ) -> SUNRISELosses:
+    def _losses(self, replay_data: SUNRISEReplayBufferSamples) -> SUNRISELosses:
         """
-        The entropy coefficients' and critics' losses of every member on one batch (``masks``: ``(N, S)``), nothing
-        changed yet. The two draws of the actors' Gaussian noise are, in this order, at the replayed states and at the
-        next states, each of shape ``(N, S, A)``.
+        The entropy coefficients' and critics' losses of every member on one batch, nothing changed yet. The two draws
+        of the actors' Gaussian noise are, in this order, at the replayed states and at the next states, each of shape
+        ``(N, S, A)``.
         """
-        actions_pi, log_prob = self.actor.action_log_prob(observations)
+        masks = replay_data.masks.T  # (N, S)
+        actions_pi, log_prob = self.actor.action_log_prob(replay_data.observations)
         assert isinstance(self.target_entropy, float)
         ent_coef_loss = None
         if self.ent_coef_optimizer is not None and self.log_ent_coef is not None:
@@ -390,21 +376,23 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
 
         with th.no_grad():
             # Each member's next action, all target critics on them: (N, C, S)
-            next_actions, next_log_prob = self.actor.action_log_prob(next_observations)
-            next_q_values = self.critic_target.q_values(next_observations, next_actions)
+            next_actions, next_log_prob = self.actor.action_log_prob(replay_data.next_observations)
+            next_q_values = self.critic_target.q_values(replay_data.next_observations, next_actions)
             std_q = ensemble_std(next_q_values)
             weights = backup_weight(std_q, self.backup_temperature)
             # Member m's clipped double-Q soft target y_m, (N, S)
             next_values = next_q_values.min(dim=1).values - ent_coef.unsqueeze(1) * next_log_prob
-            target_q_values = rewards.T + (1 - dones.T) * self.gamma * next_values
-        current_q_values = self.critic.q_values(observations, actions)
+            target_q_values = replay_data.rewards.T + (1 - replay_data.dones.T) * self.gamma * next_values
+        current_q_values = self.critic.q_values(replay_data.observations, replay_data.actions)
         critic_loss = weighted_bellman_loss(current_q_values, target_q_values, weights, masks).sum()
-        return SUNRISELosses(actions_pi, log_prob, ent_coef, ent_coef_loss, target_q_values, critic_loss, weights, std_q)
+        return SUNRISELosses(
+            actions_pi, log_prob, ent_coef, ent_coef_loss, target_q_values, critic_loss, weights, std_q, masks
+        )
 
-    def _actor_loss(self, observations: th.Tensor, losses: SUNRISELosses, masks: th.Tensor) -> th.Tensor:
+    def _actor_loss(self, observations: th.Tensor, losses: SUNRISELosses) -> th.Tensor:
         """Each member's actor against the minimum of its own (updated) critics, summed over members."""
         q_values_pi = self.critic.q_values(observations, losses.actions_pi).min(dim=1).values
-        return masked_mean(losses.ent_coef.unsqueeze(1) * losses.log_prob - q_values_pi, masks).sum()
+        return masked_mean(losses.ent_coef.unsqueeze(1) * losses.log_prob - q_values_pi, losses.masks).sum()
 
     def _logged(self, losses: SUNRISELosses, actor_loss: th.Tensor) -> dict[str, th.Tensor]:
         """The step's means over members of SAC's logged quantities, the mean backup weight and ensemble std."""
@@ -428,15 +416,7 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
         :param gradient_step: the step's index within the current ``train()`` call, for error messages
         :return: the values of :meth:`_logged`, as tensors
         """
-        masks = replay_data.masks.T  # (N, S)
-        losses = self._losses(
-            replay_data.observations,
-            replay_data.actions,
-            replay_data.next_observations,
-            replay_data.rewards,
-            replay_data.dones,
-            masks,
-        )
+        losses = self._losses(replay_data)
         # Nothing has changed yet: stop here if a value is not finite (a cause named before its consequences)
         quantities = {
             "entropy coefficient": losses.ent_coef,
@@ -454,7 +434,7 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
         losses.critic_loss.backward()
         self.critic.optimizer.step()
 
-        actor_loss = self._actor_loss(replay_data.observations, losses, masks)
+        actor_loss = self._actor_loss(replay_data.observations, losses)
         self._check_finite(gradient_step, {"actor loss": actor_loss})
         self.actor.optimizer.zero_grad()
         # Gradients for the actors only: the critics' weight gradients would be computed and thrown away
@@ -468,38 +448,15 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
         last step. A non-finite value raises ``FloatingPointError`` naming the first one; its step and those after it
         changed nothing.
         """
-        states = [plan.state() for plan in self._adam_plans]
         learning_rates = th.tensor([plan.optimizer.param_groups[0]["lr"] for plan in self._adam_plans], device=self.device)
-        due = {flag: th.tensor(flag, device=self.device) for flag in (False, True)}
-
-        def step(gradient_step: int, healthy: th.Tensor) -> CompiledStepOutput:
-            replay_data = self._sample(batch_size)
-            return self._compiled_step(
-                replay_data.observations,
-                replay_data.actions,
-                replay_data.next_observations,
-                replay_data.rewards,
-                replay_data.dones,
-                replay_data.masks.T,
-                learning_rates=learning_rates,
-                target_update=due[target_update_due(self._n_updates, gradient_step, self.target_update_interval)],
-                healthy=healthy,
-                states=states,
-            )
-
-        outputs = run_steps(step, gradient_steps, self.compile_update == "reduce-overhead", self.device)
+        outputs: list[CompiledStepOutput] = run_steps(self, partial(self._sample, batch_size), learning_rates, gradient_steps)
         logged, _ = read_steps(outputs, COMPILED_QUANTITIES, partial(gradient_step_context, self), th.zeros(0))
         for name, value in zip(LOGGED, logged, strict=False):
             self.logger.record(f"train/{name}", value)
 
     def _gradient_step_graph(
         self,
-        observations: th.Tensor,
-        actions: th.Tensor,
-        next_observations: th.Tensor,
-        rewards: th.Tensor,
-        dones: th.Tensor,
-        masks: th.Tensor,
+        replay_data: SUNRISEReplayBufferSamples,
         *,
         learning_rates: th.Tensor,
         target_update: th.Tensor,
@@ -517,7 +474,7 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
         :param states: each optimizer's Adam state (:meth:`AdamPlan.state`), in ``_adam_plans`` order
         """
         actor_plan, critic_plan = self._adam_plans[:2]
-        losses = self._losses(observations, actions, next_observations, rewards, dones, masks)
+        losses = self._losses(replay_data)
         critic_grads = th.autograd.grad(losses.critic_loss, critic_plan.params)
         entropy_grads: tuple[th.Tensor, ...] = ()
         if losses.ent_coef_loss is not None:
@@ -534,7 +491,7 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
         if losses.ent_coef_loss is not None:
             masked_adam(self._adam_plans[2], entropy_grads, states[2], [learning_rates[2]], apply)
         masked_adam(critic_plan, critic_grads, states[1], [learning_rates[1]] * len(critic_plan.settings), apply)
-        actor_loss = self._actor_loss(observations, losses, masks)
+        actor_loss = self._actor_loss(replay_data.observations, losses)
         actor_grads = th.autograd.grad(actor_loss, actor_plan.params)
         finite += [th.isfinite(actor_loss), all_finite(actor_grads)]
         apply_actor = apply & finite[-2] & finite[-1]

@@ -6,7 +6,6 @@ rounding, with the non-finite guard kept (read once per ``train()`` call, update
 import math
 from typing import Any
 
-import numpy as np
 import pytest
 import torch as th
 from stable_baselines3.common.env_util import make_vec_env
@@ -14,6 +13,7 @@ from stable_baselines3.common.utils import set_random_seed
 
 from sb3_sera import SERASAC
 from sb3_sera.common.compiled import count_graph_breaks
+from tests.helpers import assert_close_state, assert_same_state, snapshot
 
 #: One configuration for every compiled model of the file: the compiled graph is built once, then found in the cache
 SETTINGS: dict[str, Any] = dict(
@@ -35,18 +35,6 @@ def build(compile_update: Any = False, policy: str = "MlpPolicy", env: str = "Pe
     return model
 
 
-def torch_state(model: SERASAC) -> dict[str, th.Tensor]:
-    """Networks, step-size state, entropy coefficient and every optimizer's state, flat."""
-    state = {f"policy.{key}": value.clone() for key, value in model.policy.state_dict().items()}
-    state.update({f"step_size.{key}": value.clone() for key, value in model.step_size.state_dict().items()})
-    state["log_ent_coef"] = model.log_ent_coef.detach().clone()
-    optimizers = {"actor": model.actor.optimizer, "critic": model.critic.optimizer, "ent_coef": model.ent_coef_optimizer}
-    for name, optimizer in optimizers.items():
-        for index, param_state in optimizer.state_dict()["state"].items():
-            state.update({f"{name}.{index}.{key}": value.clone() for key, value in param_state.items()})
-    return state
-
-
 def train_both(models: list[SERASAC], gradient_steps: int) -> list[dict[str, float]]:
     """Train each model from the same random state; return what each logged."""
     logged = []
@@ -63,17 +51,11 @@ def eager_and_compiled() -> tuple[SERASAC, SERASAC, list[dict[str, float]]]:
     return models[0], models[1], train_both(models, STEPS)
 
 
-def assert_close_states(first: dict[str, th.Tensor], second: dict[str, th.Tensor]) -> None:
-    assert first.keys() == second.keys()
-    for key, value in first.items():
-        np.testing.assert_allclose(value.float(), second[key].float(), rtol=1e-4, atol=1e-5, err_msg=key)
-
-
 def test_the_compiled_step_equals_the_eager_one(eager_and_compiled):
     eager, compiled, (eager_logged, compiled_logged) = eager_and_compiled
     assert compiled._compiled_step is not None and eager._compiled_step is None
     # Parameters, step-size state, entropy coefficient, Adam's moments and step counts of all three optimizers
-    assert_close_states(torch_state(eager), torch_state(compiled))
+    assert_close_state(snapshot(eager, optimizers=True), snapshot(compiled, optimizers=True))
     assert compiled.critic.optimizer.state_dict()["state"][0]["step"] == STEPS + 1
     # Every logged value: losses, entropy coefficient, critic rates, the SERA diagnostics
     assert eager_logged.keys() == compiled_logged.keys()
@@ -90,15 +72,10 @@ def test_the_step_is_one_graph_without_breaks(eager_and_compiled):
     _, compiled, _ = eager_and_compiled
     batch = compiled.replay_buffer.sample(SETTINGS["batch_size"])
     states = [plan.state() for plan in compiled._adam_plans]
-    before = torch_state(compiled)
+    before = snapshot(compiled, optimizers=True)
     graphs, breaks = count_graph_breaks(
         compiled._gradient_step,
-        batch.observations,
-        batch.actions,
-        batch.next_observations,
-        batch.rewards,
-        batch.dones,
-        compiled.gamma,
+        batch,
         learning_rates=th.full((3,), 3e-4),
         target_update=th.tensor(True),
         # Not healthy: the traced step changes nothing
@@ -106,9 +83,7 @@ def test_the_step_is_one_graph_without_breaks(eager_and_compiled):
         states=states,
     )
     assert (graphs, breaks) == (1, 0)
-    assert_close_states(before, torch_state(compiled))
-    for key, value in before.items():
-        assert th.equal(value, torch_state(compiled)[key]), key
+    assert_same_state(before, snapshot(compiled, optimizers=True))
 
 
 @pytest.mark.parametrize(
@@ -118,12 +93,10 @@ def test_a_non_finite_value_stops_the_compiled_step_and_changes_nothing(poison, 
     model = build(True)
     model.train(gradient_steps=2, batch_size=SETTINGS["batch_size"])
     model.replay_buffer.rewards[:] = poison
-    before, updates = torch_state(model), model._n_updates
+    before, updates = snapshot(model, optimizers=True), model._n_updates
     with pytest.raises(FloatingPointError, match=rf"^Non-finite {named} at gradient step {updates + 1} "):
         model.train(gradient_steps=3, batch_size=SETTINGS["batch_size"])
-    after = torch_state(model)
-    for key, value in before.items():
-        assert th.equal(value, after[key]), key
+    assert_same_state(before, snapshot(model, optimizers=True))
     assert model._n_updates == updates
 
 
@@ -136,7 +109,7 @@ def test_a_compiled_model_saves_loads_and_goes_on(eager_and_compiled, tmp_path):
         loaded = SERASAC.load(tmp_path / "model", env=make_vec_env("Pendulum-v1"), compile_update=compile_update)
         loaded.load_replay_buffer(tmp_path / "buffer")
         assert loaded.compile_update is compile_update and (loaded._compiled_step is not None) is compile_update
-        assert_close_states(torch_state(compiled), torch_state(loaded))
+        assert_close_state(snapshot(compiled, optimizers=True), snapshot(loaded, optimizers=True))
         # The loaded optimizers' state (written by the compiled step in torch's format) carries on, either way
         loaded.learn(2, reset_num_timesteps=False)
         assert loaded.critic.optimizer.state_dict()["state"][0]["step"] == steps + 2
@@ -156,9 +129,9 @@ def test_the_compiled_step_follows_the_critic_lr_max_schedule():
 
 
 def test_the_multi_agent_step_compiles_and_equals_the_eager_one():
-    models = [build(flag, "CTDEPolicy", "sb3_sera/SimpleSpread-v0", policy_kwargs={}) for flag in (False, True)]
+    models = [build(flag, "CTDEPolicy", "sb3_sera/SimpleSpread-v0") for flag in (False, True)]
     eager_logged, compiled_logged = train_both(models, 2)
-    assert_close_states(torch_state(models[0]), torch_state(models[1]))
+    assert_close_state(snapshot(models[0], optimizers=True), snapshot(models[1], optimizers=True))
     assert compiled_logged["train/critic_loss"] == pytest.approx(eager_logged["train/critic_loss"], rel=1e-4)
 
 

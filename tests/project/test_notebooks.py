@@ -10,8 +10,9 @@ import yaml
 from nbclient import NotebookClient
 
 from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
+from tests.helpers import ROOT
 
-NOTEBOOKS = sorted((Path(__file__).parents[1] / "notebooks").glob("*.ipynb"))
+NOTEBOOKS = sorted((ROOT / "notebooks").glob("*.ipynb"))
 # Each notebook's run folder under SB3_SERA_NOTEBOOK_OUT, and the study it reads from the ledger
 RUN_FOLDERS = {"serasac_vs_sac": "single_agent", "serasac_vs_masac_multiagent": "multi_agent"}
 STUDIES = {

@@ -12,13 +12,13 @@ import torch as th
 from sb3_sera import MADDPG, MAPPO, MASAC, MATD3, SERASAC
 from sb3_sera.ctde.env import STATE_KEY
 from sb3_sera.ctde.execution import DecentralizedActors
+from tests.helpers import SMALL_CTDE
 
-OFF_POLICY = dict(learning_starts=50, batch_size=32, buffer_size=1_000)
 ALGORITHMS = {
-    SERASAC: OFF_POLICY,
-    MASAC: OFF_POLICY,
-    MATD3: OFF_POLICY,
-    MADDPG: OFF_POLICY,
+    SERASAC: SMALL_CTDE,
+    MASAC: SMALL_CTDE,
+    MATD3: SMALL_CTDE,
+    MADDPG: SMALL_CTDE,
     MAPPO: dict(n_steps=64, batch_size=32, n_epochs=2),
 }
 
@@ -71,7 +71,7 @@ class _WritesMarker:
 
 
 def test_loading_controllers_runs_no_code_from_the_files(tmp_path):
-    model = MASAC("CTDEPolicy", "sb3_sera/SimpleSpread-v0", seed=0, **OFF_POLICY)
+    model = MASAC("CTDEPolicy", "sb3_sera/SimpleSpread-v0", seed=0, **SMALL_CTDE)
     folder = tmp_path / "controllers"
     DecentralizedActors.from_model(model).save(folder)
     marker = tmp_path / "marker"
@@ -104,7 +104,7 @@ def test_loading_controllers_runs_no_code_from_the_files(tmp_path):
 
 @pytest.mark.parametrize("algo", [SERASAC, MASAC, MATD3], ids=lambda algo: algo.__name__)
 def test_actions_are_decentralized_and_critics_centralized(algo):
-    model = algo("CTDEPolicy", "sb3_sera/Pusher-3p-v0", seed=0, **OFF_POLICY)
+    model = algo("CTDEPolicy", "sb3_sera/Pusher-3p-v0", seed=0, **SMALL_CTDE)
     observation, _ = gym.make("sb3_sera/Pusher-3p-v0").unwrapped.reset(seed=0)
     changed = copy.deepcopy(observation)
     changed["agent_1"] = changed["agent_1"] + 1.0
@@ -141,7 +141,7 @@ def test_mappo_value_is_centralized_and_actions_decentralized():
 
 
 def test_joint_log_prob_is_the_sum_of_the_agents():
-    model = MASAC("CTDEPolicy", "sb3_sera/Pusher-3p-v0", seed=0, **OFF_POLICY)
+    model = MASAC("CTDEPolicy", "sb3_sera/Pusher-3p-v0", seed=0, **SMALL_CTDE)
     observation = batch(gym.make("sb3_sera/Pusher-3p-v0").unwrapped.reset(seed=0)[0])
     th.manual_seed(7)
     joint_actions, joint_log_prob = model.actor.action_log_prob(observation)
@@ -164,13 +164,13 @@ def test_joint_log_prob_is_the_sum_of_the_agents():
 
 def test_entropy_target_is_minus_the_joint_action_size():
     for algo in (SERASAC, MASAC):
-        model = algo("CTDEPolicy", "sb3_sera/Pusher-3p-v0", **OFF_POLICY)
+        model = algo("CTDEPolicy", "sb3_sera/Pusher-3p-v0", **SMALL_CTDE)
         assert model.target_entropy == -7.0  # 3 + 1 + 3 action dimensions
 
 
 def test_actor_parameter_sharing():
-    shared = MASAC("CTDEPolicy", "sb3_sera/SimpleSpread-v0", seed=0, policy_kwargs=dict(share_actor=True), **OFF_POLICY)
-    separate = MASAC("CTDEPolicy", "sb3_sera/SimpleSpread-v0", seed=0, **OFF_POLICY)
+    shared = MASAC("CTDEPolicy", "sb3_sera/SimpleSpread-v0", seed=0, policy_kwargs=dict(share_actor=True), **SMALL_CTDE)
+    separate = MASAC("CTDEPolicy", "sb3_sera/SimpleSpread-v0", seed=0, **SMALL_CTDE)
     n_shared = sum(p.numel() for p in shared.actor.parameters())
     assert 3 * n_shared == sum(p.numel() for p in separate.actor.parameters())
     shared.learn(100)
@@ -196,4 +196,4 @@ def test_ctde_policy_needs_a_ctde_env():
 
 def test_controllers_need_a_ctde_model():
     with pytest.raises(TypeError, match="not trained with a CTDE policy"):
-        DecentralizedActors.from_model(SERASAC("MlpPolicy", "Pendulum-v1", **OFF_POLICY))
+        DecentralizedActors.from_model(SERASAC("MlpPolicy", "Pendulum-v1", **SMALL_CTDE))

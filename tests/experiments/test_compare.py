@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
-from sb3_sera.experiments import compare, runs
+from sb3_sera.experiments import backends, compare, engine, specs
 from sb3_sera.experiments.cli import main
 
 TINY = ["--seeds", "0", "-n", "240", "--eval-freq", "120", "--eval-episodes", "1", "--reps", "200"]
@@ -99,12 +99,30 @@ def test_unknown_algorithm_is_refused_before_any_run(tmp_path):
 
 
 def test_a_failed_run_leaves_no_folder_and_is_named(tmp_path):
-    bad = runs.make_spec("serasac", "serasac", "Pendulum-v1", 0, 200, {"policy_kwargs": "dict(n_critics=1)"}, 100, 1)
-    good = runs.make_spec("sac", "sac", "Pendulum-v1", 0, 200, {"learning_starts": 100}, 100, 1)
+    bad = specs.make_spec(
+        variant="serasac",
+        algo="serasac",
+        env_id="Pendulum-v1",
+        seed=0,
+        n_timesteps=200,
+        overrides={"policy_kwargs": "dict(n_critics=1)"},
+        eval_freq=100,
+        n_eval_episodes=1,
+    )
+    good = specs.make_spec(
+        variant="sac",
+        algo="sac",
+        env_id="Pendulum-v1",
+        seed=0,
+        n_timesteps=200,
+        overrides={"learning_starts": 100},
+        eval_freq=100,
+        n_eval_episodes=1,
+    )
     with pytest.raises(
         RuntimeError, match=r"1 of 2 run\(s\) failed: serasac on Pendulum-v1 seed 0 \(.*serasac/Pendulum-v1_1\)"
     ):
-        runs.execute([bad, good], tmp_path, n_jobs=2, progress_bar=False)
+        backends.execute([bad, good], tmp_path, n_jobs=2, progress_bar=False)
     assert not (tmp_path / "serasac" / "Pendulum-v1_1").exists()
     assert (tmp_path / "sac" / "Pendulum-v1_1" / "result.json").exists()
 
@@ -118,23 +136,25 @@ def test_module_entry_point_help():
 def test_policy_follows_the_task():
     from stable_baselines3.common.env_util import make_vec_env
 
-    assert runs.policy_for(make_vec_env("Pendulum-v1")) == "MlpPolicy"
-    assert runs.policy_for(make_vec_env("sb3_sera/SimpleSpread-v0")) == "CTDEPolicy"
+    assert engine.policy_for(make_vec_env("Pendulum-v1")) == "MlpPolicy"
+    assert engine.policy_for(make_vec_env("sb3_sera/SimpleSpread-v0")) == "CTDEPolicy"
 
 
 def test_hyperparameters_come_from_the_zoo_files():
     # This package's file for its algorithms, rl-zoo3's own for the zoo's
-    spec = runs.make_spec("serasac", "serasac", "HalfCheetah-v5", 0, 20000)
+    spec = specs.make_spec(variant="serasac", algo="serasac", env_id="HalfCheetah-v5", seed=0, n_timesteps=20000)
     assert spec.hyperparams["learning_starts"] == 10000 and spec.hyperparams["critic_lr_max"] == 5e-4
     assert spec.hyperparams_source.endswith("hyperparams/serasac.yml:HalfCheetah-v5")
-    sac = runs.make_spec("sac", "sac", "Pendulum-v1", 0, 1000, {"batch_size": 64})
+    sac = specs.make_spec(
+        variant="sac", algo="sac", env_id="Pendulum-v1", seed=0, n_timesteps=1000, overrides={"batch_size": 64}
+    )
     assert sac.hyperparams == {"policy": "MlpPolicy", "learning_rate": 1e-3, "batch_size": 64}
     assert "rl_zoo3" in sac.hyperparams_source
 
 
 def test_default_threads_follow_omp_num_threads(monkeypatch):
     monkeypatch.setenv("OMP_NUM_THREADS", "1")
-    assert runs.default_threads(1) == 1
+    assert backends.default_threads(1) == 1
     monkeypatch.delenv("OMP_NUM_THREADS")
-    monkeypatch.setattr(runs.os, "cpu_count", lambda: 8)
-    assert runs.default_threads(1) == 8 and runs.default_threads(3) == 2 and runs.default_threads(16) == 1
+    monkeypatch.setattr(backends.os, "cpu_count", lambda: 8)
+    assert backends.default_threads(1) == 8 and backends.default_threads(3) == 2 and backends.default_threads(16) == 1

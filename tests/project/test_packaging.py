@@ -12,8 +12,7 @@ import pytest
 from sb3_sera import __version__
 from sb3_sera.experiments.cli import main
 from sb3_sera.experiments.zoo import ZOO_ALGOS
-
-ROOT = Path(__file__).resolve().parents[1]
+from tests.helpers import ROOT
 
 
 @pytest.fixture(scope="module")

@@ -21,22 +21,7 @@ from sb3_sera.experiments.zoo import HYPERPARAMS_DIR, ZOO_ALGOS, register_with_z
 from sb3_sera.sunrise.buffers import SUNRISEReplayBufferSamples, bootstrap_masks
 from sb3_sera.sunrise.ensemble import backup_weight, ensemble_std, masked_mean, ucb_choice, weighted_bellman_loss
 from sb3_sera.sunrise.policies import SUNRISEPolicy
-
-ENV_ID = "Pendulum-v1"
-SMALL = dict(learning_starts=50, batch_size=32, buffer_size=2_000)
-
-
-def snapshot(model: SUNRISE) -> dict[str, th.Tensor]:
-    state = {f"policy.{k}": v.clone() for k, v in model.policy.state_dict().items()}
-    assert model.log_ent_coef is not None
-    state["log_ent_coef"] = model.log_ent_coef.detach().clone()
-    return state
-
-
-def assert_same_state(first: dict[str, th.Tensor], second: dict[str, th.Tensor]) -> None:
-    assert first.keys() == second.keys()
-    for key in first:
-        assert th.equal(first[key], second[key]), key
+from tests.helpers import ENV_ID, SMALL, assert_same_state, snapshot
 
 
 def member_linear(layer: BatchedLinear, member: int) -> nn.Linear:

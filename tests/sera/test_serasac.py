@@ -14,27 +14,11 @@ from stable_baselines3.common.evaluation import evaluate_policy
 
 from sb3_sera import SERASAC
 from sb3_sera.sera.policies import CRITIC_ARCHS
-
-ENV_ID = "Pendulum-v1"
-SMALL = dict(learning_starts=50, batch_size=32, buffer_size=2_000)
+from tests.helpers import ENV_ID, SMALL, assert_same_state, serasac_as_sac, snapshot
 
 
 def linear_shapes(module: th.nn.Module) -> list[tuple[int, int]]:
     return [(layer.in_features, layer.out_features) for layer in module.modules() if isinstance(layer, th.nn.Linear)]
-
-
-def snapshot(model: SERASAC) -> dict[str, th.Tensor]:
-    state = {f"policy.{k}": v.clone() for k, v in model.policy.state_dict().items()}
-    state.update({f"step_size.{k}": v.clone() for k, v in model.step_size.state_dict().items()})
-    if model.log_ent_coef is not None:
-        state["log_ent_coef"] = model.log_ent_coef.detach().clone()
-    return state
-
-
-def assert_same_state(first: dict[str, th.Tensor], second: dict[str, th.Tensor]) -> None:
-    assert first.keys() == second.keys()
-    for key in first:
-        assert th.equal(first[key], second[key]), key
 
 
 def test_default_critics_follow_table_4():
@@ -154,18 +138,7 @@ def test_sac_equivalent_configuration():
     env = make_vec_env(ENV_ID, n_envs=1, seed=0)
     sac = SAC("MlpPolicy", env, seed=0, learning_starts=200, batch_size=64)
     sac.learn(200)
-    sera = SERASAC(
-        "MlpPolicy",
-        env,
-        seed=1,
-        learning_starts=200,
-        batch_size=64,
-        target_aggregation="min",
-        actor_aggregation="min",
-        adaptive_critic_lr=False,
-        disagreement_coef=0.0,
-        policy_kwargs=dict(n_critics=2, net_arch=[256, 256]),
-    )
+    sera = serasac_as_sac(env)
     sera.learn(1)  # sets up the logger
     sera.policy.load_state_dict(sac.policy.state_dict())
     sera.replay_buffer = copy.deepcopy(sac.replay_buffer)

@@ -25,9 +25,8 @@ from sb3_sera.experiments.zoo import HYPERPARAMS_DIR, ZOO_ALGOS, register_with_z
 from sb3_sera.iet.latents import LATENT_KEY, LatentVecEnv
 from sb3_sera.iet.networks import SoftModularNetwork, combine_modules, mix_modules, routing_entropy
 from sb3_sera.iet.policies import IETAgentActor
+from tests.helpers import CTDE_TASK, SMALL_CTDE
 
-ENV_ID = "sb3_sera/SimpleSpread-v0"
-SMALL = dict(learning_starts=50, batch_size=32, buffer_size=1_000)
 AGENTS = ["agent_0", "agent_1", "agent_2"]
 
 
@@ -114,7 +113,7 @@ def test_network_arguments_are_checked():
 
 
 def test_latents_are_drawn_per_agent_per_episode():
-    venv = LatentVecEnv(make_vec_env(ENV_ID, n_envs=2, seed=0), n_agents=3, latent_dim=4, seed=0)
+    venv = LatentVecEnv(make_vec_env(CTDE_TASK, n_envs=2, seed=0), n_agents=3, latent_dim=4, seed=0)
     assert venv.observation_space[LATENT_KEY].shape == (3, 4)
     obs = venv.reset()
     first = obs[LATENT_KEY]
@@ -135,13 +134,13 @@ def test_latents_are_drawn_per_agent_per_episode():
                 np.testing.assert_array_equal(obs[LATENT_KEY][index], latents[index])
     assert episodes == 4
     # Standard normal draws
-    many = LatentVecEnv(make_vec_env(ENV_ID, n_envs=1), n_agents=1000, latent_dim=10, seed=1).reset()[LATENT_KEY]
+    many = LatentVecEnv(make_vec_env(CTDE_TASK, n_envs=1), n_agents=1000, latent_dim=10, seed=1).reset()[LATENT_KEY]
     assert abs(many.mean()) < 0.03 and abs(many.std() - 1.0) < 0.03
 
 
 def test_latents_follow_the_seed():
     def first_latents(seed):
-        venv = LatentVecEnv(make_vec_env(ENV_ID, n_envs=1), n_agents=3, latent_dim=4)
+        venv = LatentVecEnv(make_vec_env(CTDE_TASK, n_envs=1), n_agents=3, latent_dim=4)
         venv.seed(seed)
         return venv.reset()[LATENT_KEY]
 
@@ -158,7 +157,7 @@ def test_latent_wrapper_needs_ctde_observations():
 
 
 def test_replay_buffer_keeps_each_episodes_latents():
-    model = IET("CTDEPolicy", ENV_ID, seed=0, latent_dim=4, **SMALL).learn(100)
+    model = IET("CTDEPolicy", CTDE_TASK, seed=0, latent_dim=4, **SMALL_CTDE).learn(100)
     assert model.observation_space[LATENT_KEY].shape == (3, 4)
     stored = model.replay_buffer.observations[LATENT_KEY][:100, 0]
     following = model.replay_buffer.next_observations[LATENT_KEY][:100, 0]
@@ -173,7 +172,7 @@ def test_replay_buffer_keeps_each_episodes_latents():
 
 
 def test_agents_read_their_own_latent_and_critics_read_all():
-    model = IET("CTDEPolicy", ENV_ID, seed=0, **SMALL)
+    model = IET("CTDEPolicy", CTDE_TASK, seed=0, **SMALL_CTDE)
     observation = model.env.reset()
     obs = {key: th.as_tensor(value) for key, value in observation.items()}
     changed = {**obs, LATENT_KEY: obs[LATENT_KEY].clone()}
@@ -189,8 +188,8 @@ def test_agents_read_their_own_latent_and_critics_read_all():
 
 
 def test_predict_without_latents_keeps_them_as_state():
-    model = IET("CTDEPolicy", ENV_ID, seed=0, **SMALL)
-    env = gym.make(ENV_ID)
+    model = IET("CTDEPolicy", CTDE_TASK, seed=0, **SMALL_CTDE)
+    env = gym.make(CTDE_TASK)
     observation, _ = env.reset(seed=0)
     th.manual_seed(0)
     action, state = model.predict(observation, deterministic=True)
@@ -210,16 +209,16 @@ def test_predict_without_latents_keeps_them_as_state():
 
 
 def test_run_evaluate_save_load_and_continue(tmp_path):
-    model = IET("CTDEPolicy", ENV_ID, seed=0, **SMALL).learn(150)
+    model = IET("CTDEPolicy", CTDE_TASK, seed=0, **SMALL_CTDE).learn(150)
     # On the env IET trains on (latents in the observations) and on a plain CTDE env (latents as state)
     mean_wrapped, _ = evaluate_policy(model, model.get_env(), n_eval_episodes=2)
-    mean_plain, _ = evaluate_policy(model, gym.make(ENV_ID), n_eval_episodes=2)
+    mean_plain, _ = evaluate_policy(model, gym.make(CTDE_TASK), n_eval_episodes=2)
     assert np.isfinite(mean_wrapped) and np.isfinite(mean_plain)
     observation = model.env.reset()
     actions, _ = model.predict(observation, deterministic=True)
     model.save(tmp_path / "model")
     model.save_replay_buffer(tmp_path / "buffer")
-    loaded = IET.load(tmp_path / "model", env=gym.make(ENV_ID))
+    loaded = IET.load(tmp_path / "model", env=gym.make(CTDE_TASK))
     assert loaded.latent_dim == 10 and isinstance(loaded.get_env(), LatentVecEnv)
     assert loaded.policy.modular_kwargs == model.policy.modular_kwargs
     np.testing.assert_array_equal(loaded.predict(observation, deterministic=True)[0], actions)
@@ -230,20 +229,20 @@ def test_run_evaluate_save_load_and_continue(tmp_path):
     # Without an env: prediction only, and set_env later gives the env its latents
     bare = IET.load(tmp_path / "model")
     assert bare.get_env() is None
-    bare.set_env(gym.make(ENV_ID))
+    bare.set_env(gym.make(CTDE_TASK))
     assert LATENT_KEY in bare.get_env().observation_space.spaces
 
 
 @pytest.mark.parametrize("seeded_env", [True, False], ids=["seeded env", "unseeded env"])
 def test_two_loads_continue_the_same(tmp_path, seeded_env):
-    model = IET("CTDEPolicy", ENV_ID, seed=0, **SMALL).learn(120)
+    model = IET("CTDEPolicy", CTDE_TASK, seed=0, **SMALL_CTDE).learn(120)
     model.save(tmp_path / "model")
     model.save_replay_buffer(tmp_path / "buffer")
 
     def load_and_continue():
         # A loaded model's env is seeded from the model's seed, as SB3's load seeds it, and its latents continue the
         # saved latent generator
-        env = make_vec_env(ENV_ID, seed=5) if seeded_env else gym.make(ENV_ID)
+        env = make_vec_env(CTDE_TASK, seed=5) if seeded_env else gym.make(CTDE_TASK)
         loaded = IET.load(tmp_path / "model", env=env)
         loaded.load_replay_buffer(tmp_path / "buffer")
         loaded.learn(60, reset_num_timesteps=False)
@@ -256,20 +255,20 @@ def test_two_loads_continue_the_same(tmp_path, seeded_env):
 
 
 def test_a_loaded_model_continues_the_saved_latent_generator(tmp_path):
-    model = IET("CTDEPolicy", ENV_ID, seed=0, **SMALL).learn(60)
+    model = IET("CTDEPolicy", CTDE_TASK, seed=0, **SMALL_CTDE).learn(60)
     model.save(tmp_path / "model")
     expected = model.env.rng.standard_normal(4)
-    loaded = IET.load(tmp_path / "model", env=gym.make(ENV_ID))
+    loaded = IET.load(tmp_path / "model", env=gym.make(CTDE_TASK))
     np.testing.assert_array_equal(loaded.env.rng.standard_normal(4), expected)
     # seed= given to load() reseeds the latents, as it reseeds everything else
-    reseeded = [IET.load(tmp_path / "model", env=gym.make(ENV_ID), seed=7).env.rng.standard_normal(4) for _ in range(2)]
+    reseeded = [IET.load(tmp_path / "model", env=gym.make(CTDE_TASK), seed=7).env.rng.standard_normal(4) for _ in range(2)]
     np.testing.assert_array_equal(*reseeded)
     assert not np.array_equal(reseeded[0], expected)
 
 
 def test_determinism():
     def train():
-        model = IET("CTDEPolicy", ENV_ID, seed=3, **SMALL).learn(120)
+        model = IET("CTDEPolicy", CTDE_TASK, seed=3, **SMALL_CTDE).learn(120)
         return th.cat([parameter.flatten() for parameter in model.policy.parameters()]), model.replay_buffer.observations[
             LATENT_KEY
         ][:120]
@@ -280,7 +279,7 @@ def test_determinism():
 
 
 def test_multi_env_and_routing_statistics():
-    model = IET("CTDEPolicy", make_vec_env(ENV_ID, n_envs=2, seed=0), seed=0, **SMALL, gradient_steps=1).learn(120)
+    model = IET("CTDEPolicy", make_vec_env(CTDE_TASK, n_envs=2, seed=0), seed=0, **SMALL_CTDE, gradient_steps=1).learn(120)
     assert model.replay_buffer.observations[LATENT_KEY].shape[1:] == (2, 3, 10)
     model._record_routing()
     values = model.logger.name_to_value
@@ -299,7 +298,7 @@ def test_signature_progress_bar_and_tensorboard(tmp_path):
 
     # rl-zoo3 files and bench grids are checked against it: SAC's hyperparameters and latent_dim
     assert set(inspect.signature(IET).parameters) == set(inspect.signature(SAC).parameters) | {"latent_dim"}
-    model = IET("CTDEPolicy", ENV_ID, seed=0, tensorboard_log=str(tmp_path), **SMALL)
+    model = IET("CTDEPolicy", CTDE_TASK, seed=0, tensorboard_log=str(tmp_path), **SMALL_CTDE)
     model.learn(100, log_interval=1, progress_bar=True)
     events = EventAccumulator(str(tmp_path / "IET_1"))
     events.Reload()
@@ -311,8 +310,8 @@ def test_evaluations_draw_latents_without_touching_training(tmp_path):
     from sb3_sera.experiments.evaluation import InitialStateBiasCallback
 
     def train(evaluate: bool):
-        model = IET("CTDEPolicy", ENV_ID, seed=0, **SMALL)
-        evaluation = make_vec_env(ENV_ID, seed=1)
+        model = IET("CTDEPolicy", CTDE_TASK, seed=0, **SMALL_CTDE)
+        evaluation = make_vec_env(CTDE_TASK, seed=1)
         callback = InitialStateBiasCallback(evaluation, eval_freq=50, n_eval_episodes=2, log_path=str(tmp_path))
         with warnings.catch_warnings():
             warnings.filterwarnings("error", message="Training and eval env are not of the same type")
@@ -331,7 +330,7 @@ def test_evaluations_draw_latents_without_touching_training(tmp_path):
 
 
 def test_decentralized_controllers_with_latents(tmp_path):
-    model = IET("CTDEPolicy", "sb3_sera/Pusher-3p-v0", seed=0, **SMALL).learn(64)
+    model = IET("CTDEPolicy", "sb3_sera/Pusher-3p-v0", seed=0, **SMALL_CTDE).learn(64)
     controllers = DecentralizedActors.from_model(model)
     assert set(controllers.latents) == {"agent_0", "agent_1", "agent_2"}
     env = gym.make("sb3_sera/Pusher-3p-v0").unwrapped
@@ -357,18 +356,18 @@ def test_decentralized_controllers_with_latents(tmp_path):
 
 def test_bad_input_is_refused():
     with pytest.raises(ValueError, match="policy='CTDEPolicy'"):
-        IET("MlpPolicy", ENV_ID)
+        IET("MlpPolicy", CTDE_TASK)
     with pytest.raises(ValueError, match="CTDE policies need a CTDEEnv"):
         IET("CTDEPolicy", "Pendulum-v1")
     with pytest.raises(ValueError, match="latent_dim"):
-        IET("CTDEPolicy", ENV_ID, latent_dim=0)
-    normalized = VecNormalize(DummyVecEnv([lambda: gym.make(ENV_ID)]), norm_obs_keys=[STATE_KEY, *AGENTS])
+        IET("CTDEPolicy", CTDE_TASK, latent_dim=0)
+    normalized = VecNormalize(DummyVecEnv([lambda: gym.make(CTDE_TASK)]), norm_obs_keys=[STATE_KEY, *AGENTS])
     with pytest.raises(ValueError, match="VecNormalize"):
         IET("CTDEPolicy", normalized)
     with pytest.raises(ValueError, match="latents of size 10, but latent_dim=4"):
-        IET("CTDEPolicy", IET("CTDEPolicy", ENV_ID, **SMALL).get_env(), latent_dim=4)
+        IET("CTDEPolicy", IET("CTDEPolicy", CTDE_TASK, **SMALL_CTDE).get_env(), latent_dim=4)
     with pytest.raises(ValueError, match="net_arch sizes the critics only"):
-        IET("CTDEPolicy", ENV_ID, policy_kwargs=dict(net_arch=dict(pi=[64], qf=[64])))
+        IET("CTDEPolicy", CTDE_TASK, policy_kwargs=dict(net_arch=dict(pi=[64], qf=[64])))
 
 
 # --- Zoo ---
@@ -398,7 +397,7 @@ def test_zoo_registration_sampler_and_hyperparameter_file():
 
 def test_zoo_train_with_evaluations_then_enjoy(tmp_path, sb3_sera):
     folder = str(tmp_path)
-    common = ["--algo", "iet", "--env", ENV_ID, "-f", folder, "--num-threads", "1"]
+    common = ["--algo", "iet", "--env", CTDE_TASK, "-f", folder, "--num-threads", "1"]
     sb3_sera(
         "train",
         *common,

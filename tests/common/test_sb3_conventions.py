@@ -12,9 +12,7 @@ from stable_baselines3 import DDPG, PPO, SAC, TD3
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_sera import ACE, MADDPG, MAPPO, MASAC, MATD3, SERASAC, SUNRISE
-
-ENV_ID = "Pendulum-v1"
-SMALL = dict(learning_starts=50, batch_size=32, buffer_size=2_000)
+from tests.helpers import ENV_ID, SMALL, serasac_as_sac
 
 
 def target_parameters(model: SERASAC) -> list[th.Tensor]:
@@ -124,32 +122,14 @@ def test_critic_lr_max_accepts_a_schedule(tmp_path):
     assert float(loaded.step_size.lr_max) == pytest.approx(schedule(loaded._current_progress_remaining), rel=1e-6)
 
 
-def sac_configuration(env, optimizer_kwargs=None) -> SERASAC:
-    policy_kwargs = dict(n_critics=2, net_arch=[256, 256])
-    if optimizer_kwargs is not None:
-        policy_kwargs["optimizer_kwargs"] = optimizer_kwargs
-    return SERASAC(
-        "MlpPolicy",
-        env,
-        seed=1,
-        learning_starts=200,
-        batch_size=64,
-        target_aggregation="min",
-        actor_aggregation="min",
-        adaptive_critic_lr=False,
-        disagreement_coef=0.0,
-        policy_kwargs=policy_kwargs,
-    )
-
-
 def test_fused_adam_is_the_default_for_actor_and_critics_and_optimizer_kwargs_turns_it_off():
     """What the README says of the optimizers, and that SB3's Adam (optimizer_kwargs={}) tracks SB3's SAC."""
     env = make_vec_env(ENV_ID, n_envs=1, seed=0)
-    default = sac_configuration(env)
+    default = serasac_as_sac(env)
     assert default.actor.optimizer.defaults["fused"] and default.critic.optimizer.defaults["fused"]
     assert not default.ent_coef_optimizer.defaults["fused"]  # SAC's own entropy-coefficient Adam
     sac = SAC("MlpPolicy", env, seed=0, learning_starts=200, batch_size=64).learn(200)
-    sera = sac_configuration(env, optimizer_kwargs={})
+    sera = serasac_as_sac(env, optimizer_kwargs={})
     assert not sera.actor.optimizer.defaults["fused"] and not sera.critic.optimizer.defaults["fused"]
     sera.learn(1)
     sera.policy.load_state_dict(sac.policy.state_dict())

@@ -1,14 +1,13 @@
 """`sb3-sera bench`: grid checks before any run, local runs that resume, and a local Ray instance."""
 
-from pathlib import Path
-
 import pytest
 
 from sb3_sera.experiments import bench
 from sb3_sera.experiments.cli import main
 from sb3_sera.experiments.report import PAPER_NAMES, PAPER_RESULTS
+from tests.helpers import ROOT
 
-GRIDS = Path(__file__).resolve().parents[1] / "benchmarks" / "grids"
+GRIDS = ROOT / "benchmarks" / "grids"
 
 GRID = """
 algorithms:

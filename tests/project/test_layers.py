@@ -8,7 +8,9 @@ from pathlib import Path
 
 import pytest
 
-PACKAGE = Path(__file__).resolve().parents[1] / "sb3_sera"
+from tests.helpers import ROOT
+
+PACKAGE = ROOT / "sb3_sera"
 #: Each subpackage's layer: a module may import its own subpackage and lower layers only
 LAYERS = {"common": 0, "ctde": 1, "sera": 2, "sunrise": 2, "ace": 2, "iet": 2, "experiments": 3}
 

@@ -14,22 +14,22 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from sb3_sera import IET, MADDPG, MAPPO, MASAC, MATD3, SERASAC, SUNRISE
 from sb3_sera.ace import ACE
 from sb3_sera.common.checks import check_hyperparameters
+from tests.helpers import CTDE_TASK, ENV_ID
 
-CTDE_TASK = "sb3_sera/SimpleSpread-v0"
-SINGLE_TASK = "Pendulum-v1"
-SMALL = dict(buffer_size=1_000)
+#: A buffer small enough for a test
+SMALL_BUFFER = dict(buffer_size=1_000)
 
 
 def build(name: str) -> Callable[..., BaseAlgorithm]:
     """``name``'s constructor on a small task, extra keyword arguments given to it."""
     return {
-        "ACE": lambda **kwargs: ACE("MlpPolicy", SINGLE_TASK, **{**SMALL, **kwargs}),
-        "SUNRISE": lambda **kwargs: SUNRISE("MlpPolicy", SINGLE_TASK, **{**SMALL, **kwargs}),
-        "SERASAC": lambda **kwargs: SERASAC("CTDEPolicy", CTDE_TASK, **{**SMALL, **kwargs}),
-        "MASAC": lambda **kwargs: MASAC("CTDEPolicy", CTDE_TASK, **{**SMALL, **kwargs}),
-        "MATD3": lambda **kwargs: MATD3("CTDEPolicy", CTDE_TASK, **{**SMALL, **kwargs}),
-        "MADDPG": lambda **kwargs: MADDPG("CTDEPolicy", CTDE_TASK, **{**SMALL, **kwargs}),
-        "IET": lambda **kwargs: IET("CTDEPolicy", CTDE_TASK, **{**SMALL, **kwargs}),
+        "ACE": lambda **kwargs: ACE("MlpPolicy", ENV_ID, **{**SMALL_BUFFER, **kwargs}),
+        "SUNRISE": lambda **kwargs: SUNRISE("MlpPolicy", ENV_ID, **{**SMALL_BUFFER, **kwargs}),
+        "SERASAC": lambda **kwargs: SERASAC("CTDEPolicy", CTDE_TASK, **{**SMALL_BUFFER, **kwargs}),
+        "MASAC": lambda **kwargs: MASAC("CTDEPolicy", CTDE_TASK, **{**SMALL_BUFFER, **kwargs}),
+        "MATD3": lambda **kwargs: MATD3("CTDEPolicy", CTDE_TASK, **{**SMALL_BUFFER, **kwargs}),
+        "MADDPG": lambda **kwargs: MADDPG("CTDEPolicy", CTDE_TASK, **{**SMALL_BUFFER, **kwargs}),
+        "IET": lambda **kwargs: IET("CTDEPolicy", CTDE_TASK, **{**SMALL_BUFFER, **kwargs}),
         "MAPPO": lambda **kwargs: MAPPO("CTDEPolicy", CTDE_TASK, **kwargs),
     }[name]
 

@@ -4,7 +4,7 @@ import pytest
 import torch as th
 from torch import nn
 
-from sb3_sera.experiments import runs
+from sb3_sera.experiments import engine, specs
 from sb3_sera.experiments.policy_kwargs import parse_policy_kwargs
 
 
@@ -44,22 +44,30 @@ def test_code_is_refused_and_never_runs(tmp_path, text, message):
 
 def test_params_on_the_command_line_never_execute_code(tmp_path, sb3_sera):
     marker = tmp_path / "marker"
-    spec = runs.make_spec(
-        "serasac",
-        "serasac",
-        "Pendulum-v1",
-        0,
-        200,
-        {"policy_kwargs": f"__import__('os').system('touch {marker}')"},
+    spec = specs.make_spec(
+        variant="serasac",
+        algo="serasac",
+        env_id="Pendulum-v1",
+        seed=0,
+        n_timesteps=200,
+        overrides={"policy_kwargs": f"__import__('os').system('touch {marker}')"},
         eval_freq=100,
     )
     with pytest.raises(ValueError, match="is not allowed"):
-        runs.check_specs([spec])
+        engine.check_specs([spec])
     assert not marker.exists()
 
 
 def test_a_shared_policy_kwargs_dict_is_not_changed_by_sb3():
     shared = {"net_arch": [32, 32]}
-    spec = runs.make_spec("sac", "sac", "Pendulum-v1", 0, 200, {"policy_kwargs": shared, "use_sde": True}, eval_freq=100)
-    runs.check_specs([spec])
+    spec = specs.make_spec(
+        variant="sac",
+        algo="sac",
+        env_id="Pendulum-v1",
+        seed=0,
+        n_timesteps=200,
+        overrides={"policy_kwargs": shared, "use_sde": True},
+        eval_freq=100,
+    )
+    engine.check_specs([spec])
     assert shared == {"net_arch": [32, 32]}

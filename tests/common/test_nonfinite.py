@@ -18,9 +18,8 @@ from stable_baselines3.common.callbacks import BaseCallback
 from sb3_sera import IET, MADDPG, MAPPO, MASAC, MATD3, SERASAC, SUNRISE
 from sb3_sera.ace import ACE
 from sb3_sera.ctde.env import STATE_KEY
+from tests.helpers import CTDE_TASK, ENV_ID
 
-CTDE_TASK = "sb3_sera/SimpleSpread-v0"
-SINGLE_TASK = "Pendulum-v1"
 OFF_POLICY = dict(learning_starts=20, batch_size=16, buffer_size=500)
 AT_STEP = 40
 
@@ -61,7 +60,7 @@ def ctde(algo: type[BaseAlgorithm], **kwargs: Any) -> Callable[[gym.Env], BaseAl
 
 MODELS: dict[str, tuple[str, Callable[[gym.Env], BaseAlgorithm]]] = {
     "ACE": (
-        SINGLE_TASK,
+        ENV_ID,
         lambda env: ACE("MlpPolicy", env, seed=0, **OFF_POLICY, policy_kwargs=dict(feature_dim=16, hidden=8, n_actors=2)),
     ),
     "MASAC": (CTDE_TASK, ctde(MASAC, **OFF_POLICY, policy_kwargs=dict(net_arch=[16]))),
@@ -70,7 +69,7 @@ MODELS: dict[str, tuple[str, Callable[[gym.Env], BaseAlgorithm]]] = {
     "MAPPO": (CTDE_TASK, ctde(MAPPO, n_steps=32, batch_size=16, n_epochs=2, policy_kwargs=dict(net_arch=[16]))),
     "IET": (CTDE_TASK, ctde(IET, **OFF_POLICY, policy_kwargs=dict(net_arch=[16], hidden_dim=8))),
     "SERASAC": (CTDE_TASK, ctde(SERASAC, **OFF_POLICY, policy_kwargs=dict(n_critics=2, critic_archs=[[16], [16]]))),
-    "SUNRISE": (SINGLE_TASK, lambda env: SUNRISE("MlpPolicy", env, seed=0, n_members=2, **OFF_POLICY)),
+    "SUNRISE": (ENV_ID, lambda env: SUNRISE("MlpPolicy", env, seed=0, n_members=2, **OFF_POLICY)),
 }
 OFF_POLICY_MODELS = ["ACE", "MASAC", "MATD3", "MADDPG", "IET"]
 
@@ -206,7 +205,7 @@ def test_mappo_checks_the_rollout_and_the_gradient_before_the_update():
 
 
 def test_ace_checks_observations_before_its_normalizer_learns_them():
-    model = MODELS["ACE"][1](NonFiniteAt(gym.make(SINGLE_TASK), 5, "observation", math.nan))
+    model = MODELS["ACE"][1](NonFiniteAt(gym.make(ENV_ID), 5, "observation", math.nan))
     with pytest.raises(FloatingPointError, match="Non-finite observation from the env at num_timesteps=5"):
         model.learn(10)
     normalizer = model.policy.network.normalizer

@@ -10,15 +10,16 @@ import importlib.util
 import itertools
 import math
 import sys
-from pathlib import Path
 from types import ModuleType
 
 import pytest
 import torch as th
 
+from tests.helpers import ROOT
+
 
 def _load_benchmark() -> ModuleType:
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "target_estimators.py"
+    path = ROOT / "benchmarks" / "target_estimators.py"
     spec = importlib.util.spec_from_file_location("target_estimators", path)
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)

@@ -1,0 +1,171 @@
+"""
+Where the runs of one command are made: on a local process pool (Ctrl-C or SIGTERM stops every worker once, and a
+worker ends with its parent) or as Ray tasks on a cluster. :func:`execute` holds the output folder's lock, gives each
+run its folder, makes the runs, and names the failed ones once all have ended.
+"""
+
+import contextlib
+import os
+import shutil
+import signal
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any
+
+from tqdm import tqdm
+
+from sb3_sera.experiments.engine import steps_done, train_one
+from sb3_sera.experiments.folders import assign_folders, output_lock
+from sb3_sera.experiments.records import RunResult
+from sb3_sera.experiments.specs import RunSpec
+
+
+def default_threads(n_jobs: int) -> int:
+    """
+    torch threads per run when ``n_jobs`` runs share the machine: ``OMP_NUM_THREADS`` when it is set (the user's
+    word), else the cores divided among the runs, at least one.
+    """
+    from_env = os.environ.get("OMP_NUM_THREADS", "")
+    if from_env.isdigit() and int(from_env) > 0:
+        return int(from_env)
+    return max((os.cpu_count() or 1) // max(n_jobs, 1), 1)
+
+
+class Interrupted(RuntimeError):
+    """Runs stopped by Ctrl-C (SIGINT) or SIGTERM: the finished ones are kept, the unfinished ones named."""
+
+
+def _worker_init(parent: int) -> None:
+    """
+    A run worker leaves Ctrl-C to its parent (which stops every worker once) and ends when its parent does, even
+    when the parent was killed outright (Linux: the kernel signals it; elsewhere a thread watches the parent).
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if sys.platform.startswith("linux"):
+        import ctypes
+        import ctypes.util
+
+        # A C library without prctl leaves it to the thread below to end the worker
+        with contextlib.suppress(OSError, AttributeError):
+            ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    if os.getppid() != parent:
+        os._exit(1)  # the parent died before the death signal was set
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True).start()
+
+
+def execute(
+    specs: Sequence[RunSpec],
+    out_dir: str | Path,
+    n_jobs: int | None = None,
+    ray_address: str | None = None,
+    progress_bar: bool = True,
+) -> list[RunResult]:
+    """
+    Run every spec in its folder (:func:`assign_folders`): on a local process pool of ``n_jobs`` workers (default:
+    one per core), or as Ray tasks of one CPU each on the cluster at ``ray_address`` (``"auto"``: the one
+    ``ray start`` made on this machine). Finished runs are read back, not run again. A failed run does not stop
+    the others: once all have ended, ``RuntimeError`` names the failed ones. A failed run that had not evaluated
+    yet leaves no folder behind; one that had keeps its logs, without the ``result.json`` of a finished run.
+    ``out_dir`` is locked while the runs are made (:func:`output_lock`). One Ctrl-C (or SIGTERM) stops every
+    worker and raises :class:`Interrupted` naming the unfinished runs, which the same command resumes.
+
+    :return: the results, in the order of ``specs``
+    """
+    with output_lock(out_dir):
+        folders = assign_folders(specs, out_dir)
+        if ray_address is not None:
+            outcomes = _execute_on_ray(specs, folders=folders, address=ray_address, progress_bar=progress_bar)
+        else:
+            outcomes = _execute_locally(specs, folders=folders, n_jobs=n_jobs, progress_bar=progress_bar)
+    failed = []
+    for spec, folder, outcome in zip(specs, folders, outcomes, strict=True):
+        if isinstance(outcome, BaseException):
+            failed.append(f"{spec.variant} on {spec.env_id} seed {spec.seed} ({folder}): {outcome}")
+            if not (folder / "evaluations.npz").exists():
+                shutil.rmtree(folder, ignore_errors=True)
+    if failed:
+        raise RuntimeError(f"{len(failed)} of {len(specs)} run(s) failed: " + "; ".join(failed))
+    return [outcome for outcome in outcomes if isinstance(outcome, RunResult)]
+
+
+def _execute_locally(
+    specs: Sequence[RunSpec], folders: Sequence[Path], n_jobs: int | None, progress_bar: bool
+) -> list[RunResult | BaseException]:
+    n_jobs = min(n_jobs or os.cpu_count() or 1, len(specs))
+    outcomes: dict[int, RunResult | BaseException] = {}
+    pool = ProcessPoolExecutor(
+        max_workers=n_jobs, mp_context=get_context("spawn"), initializer=_worker_init, initargs=(os.getpid(),)
+    )
+    # SIGTERM (a scheduler, kill) stops the runs as Ctrl-C does (signals are the main thread's to handle)
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, signal.default_int_handler) if main_thread else None
+    total = sum(spec.n_timesteps for spec in specs)
+    try:
+        with tqdm(total=total, desc=f"{len(specs)} runs", unit="step", disable=not progress_bar) as bar:
+            futures = {
+                pool.submit(train_one, spec, folder): index
+                for index, (spec, folder) in enumerate(zip(specs, folders, strict=True))
+            }
+            pending = set(futures)
+            while pending:
+                done, pending = wait(pending, timeout=2.0, return_when=FIRST_COMPLETED)
+                for future in done:
+                    error = future.exception()
+                    outcomes[futures[future]] = error if error is not None else future.result()
+                # Steps inside the runs: each worker writes its count every few hundred steps
+                steps = sum(steps_done(folder, spec.n_timesteps) for spec, folder in zip(specs, folders, strict=True))
+                bar.set_postfix_str(f"{len(outcomes)}/{len(specs)} runs ended")
+                bar.update(max(steps - bar.n, 0))
+    except KeyboardInterrupt:
+        for process in list(getattr(pool, "_processes", {}).values()):
+            process.kill()
+        pool.shutdown(wait=False, cancel_futures=True)
+        unfinished = [str(folder) for index, folder in enumerate(folders) if index not in outcomes]
+        raise Interrupted(
+            f"interrupted: {len(outcomes)} of {len(specs)} run(s) finished; {len(unfinished)} unfinished, left without "
+            f"result.json in {', '.join(unfinished)}: the same command resumes them"
+        ) from None
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
+    pool.shutdown()
+    return [outcomes[index] for index in range(len(specs))]
+
+
+def _execute_on_ray(
+    specs: Sequence[RunSpec], folders: Sequence[Path], address: str, progress_bar: bool
+) -> list[RunResult | BaseException]:
+    try:
+        import ray
+    except ImportError as error:
+        raise ImportError("--ray-address needs Ray: pip install 'sb3-sera[distributed]'") from error
+    ray.init(address=address, ignore_reinit_error=True, log_to_driver=False)
+    remote_train: Any = ray.remote(num_cpus=1)(train_one)
+    # Workers may start elsewhere: give them absolute folders
+    pending = {
+        remote_train.remote(spec, str(folder.resolve())): index
+        for index, (spec, folder) in enumerate(zip(specs, folders, strict=True))
+    }
+    outcomes: dict[int, RunResult | BaseException] = {}
+    with tqdm(total=len(specs), desc="runs (ray)", disable=not progress_bar) as bar:
+        while pending:
+            done, _ = ray.wait(list(pending), num_returns=1)
+            for ref in done:
+                index = pending.pop(ref)
+                try:
+                    outcomes[index] = ray.get(ref)
+                except Exception as error:  # a failed run is reported with the others
+                    outcomes[index] = error
+                bar.update()
+    return [outcomes[index] for index in range(len(specs))]

@@ -1,0 +1,149 @@
+"""
+Training one run: its model built from its spec as rl-zoo3 builds it (and every spec's model built once before any
+run starts, so that a bad setting is refused early), trained in its run folder with the evaluation callback and a
+progress file, and its records written, ``result.json`` last to mark the run finished.
+"""
+
+import copy
+import json
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch as th
+import yaml
+from gymnasium import spaces
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.noise import NormalActionNoise, OrnsteinUhlenbeckActionNoise
+from stable_baselines3.common.vec_env import VecEnv
+
+from sb3_sera.common.mujoco_log import route_mujoco_warnings
+from sb3_sera.ctde.env import STATE_KEY
+from sb3_sera.experiments.evaluation import InitialStateBiasCallback
+from sb3_sera.experiments.policy_kwargs import parse_policy_kwargs
+from sb3_sera.experiments.records import RESULT_FILE, RunResult, env_name, load_result, plain, records_dir
+from sb3_sera.experiments.registry import RUN_KEYS, algorithm_classes
+from sb3_sera.experiments.specs import RunSpec
+
+
+def make_model(spec: RunSpec, env: VecEnv, tensorboard_log: str | None = None) -> BaseAlgorithm:
+    """The spec's model on ``env``, its hyperparameters turned into objects as rl-zoo3 does."""
+    from rl_zoo3.exp_manager import ExperimentManager
+
+    kwargs = {key: value for key, value in spec.hyperparams.items() if key not in RUN_KEYS}
+    # Schedules given as strings ("lin_3e-4") become rl-zoo3's schedule objects
+    kwargs.update(ExperimentManager._preprocess_schedules({k: v for k, v in kwargs.items() if isinstance(v, str)}))
+    if isinstance(kwargs.get("policy_kwargs"), str):
+        kwargs["policy_kwargs"] = parse_policy_kwargs(kwargs["policy_kwargs"])
+    elif isinstance(kwargs.get("policy_kwargs"), dict):
+        # SB3 writes into the dict it is given (use_sde, ...): a grid's dict shared by variants must stay as written
+        kwargs["policy_kwargs"] = copy.deepcopy(kwargs["policy_kwargs"])
+    if isinstance(kwargs.get("train_freq"), list):
+        kwargs["train_freq"] = tuple(kwargs["train_freq"])
+    noise_type = spec.hyperparams.get("noise_type")
+    if noise_type is not None:
+        assert isinstance(env.action_space, spaces.Box)
+        n_actions = env.action_space.shape[0]
+        noise_std = float(spec.hyperparams.get("noise_std", 0.1))
+        noises = {"normal": NormalActionNoise, "ornstein-uhlenbeck": OrnsteinUhlenbeckActionNoise}
+        if noise_type not in noises:
+            raise ValueError(f"noise_type={noise_type!r} is invalid: expected one of {sorted(noises)}")
+        kwargs["action_noise"] = noises[noise_type](mean=np.zeros(n_actions), sigma=noise_std * np.ones(n_actions))
+    policy = spec.hyperparams.get("policy", policy_for(env))
+    model_class = algorithm_classes()[spec.algo]
+    return model_class(policy, env, seed=spec.seed, verbose=0, device=spec.device, tensorboard_log=tensorboard_log, **kwargs)
+
+
+def check_specs(specs: Sequence[RunSpec]) -> None:
+    """
+    Build each distinct (algorithm, task, hyperparameters) model once, without training, so that a value out of range
+    (``sera_alpha=2``) or a bad ``policy_kwargs`` is refused before the first run starts: ``ValueError`` naming the run.
+    """
+    seen = set()
+    for spec in specs:
+        key = json.dumps([spec.algo, spec.env_id, spec.hyperparams], sort_keys=True, default=str)
+        if key in seen:
+            continue
+        seen.add(key)
+        env = make_vec_env(spec.env_id, n_envs=1, env_kwargs=spec.hyperparams.get("env_kwargs") or {})
+        try:
+            make_model(spec, env)
+        except (ValueError, TypeError, KeyError, SyntaxError, NameError) as error:
+            raise ValueError(f"{spec.variant} on {spec.env_id}: {type(error).__name__}: {error}") from None
+        finally:
+            env.close()
+
+
+def policy_for(env: VecEnv) -> str:
+    """``"CTDEPolicy"`` for a multi-agent CTDE task (Dict observation with a state), else ``"MlpPolicy"``."""
+    space = env.observation_space
+    return "CTDEPolicy" if isinstance(space, spaces.Dict) and STATE_KEY in space.spaces else "MlpPolicy"
+
+
+#: Where a running run keeps its step count for the command's progress bar (removed when it ends)
+PROGRESS_FILE = ".progress"
+
+
+class ProgressFile(BaseCallback):
+    """Writes the model's step count to a file every ``every`` calls, for the progress bar of the command."""
+
+    def __init__(self, path: Path, every: int = 500) -> None:
+        super().__init__()
+        self.path, self.every = path, every
+
+    def _on_step(self) -> bool:
+        if self.n_calls % self.every == 0:
+            self.path.write_text(str(self.num_timesteps))
+        return True
+
+
+def steps_done(folder: Path, budget: int) -> int:
+    """Steps a run has made: its budget when finished, else what its progress file says (0 before it starts)."""
+    if (folder / RESULT_FILE).exists():
+        return budget
+    try:
+        return min(int((folder / PROGRESS_FILE).read_text() or 0), budget)
+    except (OSError, ValueError):
+        return 0
+
+
+def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
+    """
+    Train one run in its folder (made by :func:`assign_folders`), evaluating every ``spec.eval_freq`` steps; a
+    finished run is read back.
+    """
+    folder = Path(folder)
+    if (folder / RESULT_FILE).exists():
+        return load_result(folder)
+    route_mujoco_warnings()
+    # An interrupted run starts again here, maybe under newer code: its record names the code that runs now
+    (records_dir(folder, spec.env_id) / "args.yml").write_text(yaml.safe_dump(plain(spec.args()), sort_keys=True))
+    if spec.num_threads is not None:
+        th.set_num_threads(spec.num_threads)
+    env_kwargs = spec.hyperparams.get("env_kwargs") or {}
+    n_envs = int(spec.hyperparams.get("n_envs", 1))
+    env = make_vec_env(spec.env_id, n_envs=n_envs, seed=spec.seed, monitor_dir=str(folder), env_kwargs=env_kwargs)
+    eval_env = make_vec_env(spec.env_id, n_envs=1, seed=spec.seed + 10_000, env_kwargs=env_kwargs)
+    model = make_model(spec, env, tensorboard_log=str(folder))
+    callback = InitialStateBiasCallback(
+        eval_env,
+        eval_freq=max(spec.eval_freq // n_envs, 1),
+        n_eval_episodes=spec.n_eval_episodes,
+        log_path=str(folder),
+        verbose=0,
+    )
+    start = time.perf_counter()
+    progress = ProgressFile(folder / PROGRESS_FILE)
+    model.learn(spec.n_timesteps, callback=[callback, progress], tb_log_name=f"{spec.variant}_seed{spec.seed}")
+    wall_time = time.perf_counter() - start
+    (folder / PROGRESS_FILE).unlink(missing_ok=True)
+    model.save(folder / env_name(spec.env_id))
+    env.close()
+    eval_env.close()
+    # Written last: its presence marks the run as finished. Threads and device as the worker saw them
+    result = {"wall_time_s": wall_time, "torch_threads": th.get_num_threads(), "device": str(model.device)}
+    (folder / RESULT_FILE).write_text(json.dumps(result))
+    return load_result(folder)

@@ -1,0 +1,150 @@
+"""
+Writing ``report.md`` with its figures: a section per task and budget (table, the paper's mechanism claims, notes,
+figures), the across-tasks section of each budget, and the folders left out; :func:`report_roots` is
+``sb3-sera report``, and :func:`next_report_folder` gives a report a folder that no other report holds.
+"""
+
+from collections import defaultdict
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from sb3_sera.experiments import stats
+from sb3_sera.experiments.claims import claims_section
+from sb3_sera.experiments.records import RunResult, env_name
+from sb3_sera.experiments.report.aggregate import aggregate_section
+from sb3_sera.experiments.report.figures import (
+    plot_auc_bars,
+    plot_correlation_matrices,
+    plot_curves,
+    plot_diagnostics,
+    variant_colors,
+)
+from sb3_sera.experiments.report.groups import RunGroup, group_runs
+from sb3_sera.experiments.report.load import Skipped, load_runs
+from sb3_sera.experiments.report.tables import section_notes, section_table
+
+
+def write_report(
+    runs: Sequence[RunResult],
+    out: str | Path,
+    skipped: Sequence[Skipped] = (),
+    reps: int = stats.REPS,
+    matrix_step: int | None = None,
+    sources: Sequence[str] = (),
+    log: Callable[[str], None] | None = None,
+) -> Path:
+    """
+    Write ``report.md`` and its figures into the folder ``out`` (see the module's docstring).
+
+    :param runs: finished runs (:func:`load_runs`, or what ``compare``/``bench`` ran)
+    :param skipped: folders left out, listed at the end with their reasons
+    :param reps: bootstrap resamples of every interval
+    :param matrix_step: the step whose correlation matrices are drawn (None: each run's last evaluation)
+    :param sources: where the runs were read from, for the report's first line
+    :param log: called with a line saying what the report is doing, section by section (None: silent)
+    :return: the path of ``report.md``
+    """
+    if not runs:
+        raise ValueError("no finished runs to report")
+    folder = Path(out)
+    folder.mkdir(parents=True, exist_ok=True)
+    all_groups = group_runs(runs)
+    colors = variant_colors([group.variant for group in all_groups])
+    sections_by_key: dict[tuple[str, int], list[RunGroup]] = defaultdict(list)
+    for group in all_groups:
+        sections_by_key[(group.env_id, group.n_timesteps)].append(group)
+    lines = ["# Results", ""]
+    if sources:
+        lines += [f"Runs read from: {', '.join(sources)}.", ""]
+    for number, ((env_id, budget), groups) in enumerate(sections_by_key.items(), start=1):
+        stem = f"{env_name(env_id)}_{budget}"
+        if log is not None:
+            log(f"report: section {number}/{len(sections_by_key)}, {env_id} at {budget:,} steps: table, claims, figures")
+        lines += [f"## {env_id}, {budget:,} steps", "", *section_table(groups, reps), ""]
+        claims = claims_section([(group.variant, group.runs) for group in groups], reps)
+        if claims:
+            lines += ["### The paper's mechanism claims", "", *claims, ""]
+        notes = section_notes(groups, all_groups)
+        if notes:
+            lines += ["Notes:", *notes, ""]
+        grid_notes = plot_curves(
+            groups,
+            attribute="returns",
+            ylabel="evaluation return",
+            title=f"{env_id}, {budget:,} steps",
+            path=folder / f"{stem}_curves.png",
+            colors=colors,
+            reps=reps,
+        )
+        lines += [f"![{env_id} learning curves]({stem}_curves.png)", ""]
+        lines += [f"- {note}" for note in grid_notes] + ([""] if grid_notes else [])
+        if any(run.initial_state_bias for group in groups for run in group.runs):
+            plot_curves(
+                groups,
+                attribute="initial_state_bias",
+                ylabel="V(s0) - discounted return",
+                title=f"Initial-state bias (Fig. 4a), {env_id}",
+                path=folder / f"{stem}_bias.png",
+                colors=colors,
+                reps=reps,
+                zero_line=True,
+            )
+            lines += [f"![{env_id} initial-state bias]({stem}_bias.png)", ""]
+        if len(groups) > 1:
+            plot_auc_bars(groups, path=folder / f"{stem}_auc.png", colors=colors, reps=reps)
+            lines += [f"![{env_id} normalized AUC]({stem}_auc.png)", ""]
+        if plot_diagnostics(groups, path=folder / f"{stem}_diagnostics.png", colors=colors, reps=reps):
+            lines += [f"![{env_id} critic diagnostics]({stem}_diagnostics.png)", ""]
+        matrices = plot_correlation_matrices(groups, folder / f"{stem}_correlations.png", matrix_step)
+        if matrices is not None:
+            lines += [f"![{env_id} critic correlation matrices]({stem}_correlations.png)", "", matrices, ""]
+    for budget in sorted({budget for _, budget in sections_by_key}):
+        same_budget = [groups for (_, b), groups in sections_by_key.items() if b == budget]
+        if len(same_budget) > 1:
+            lines += aggregate_section(same_budget, folder=folder, colors=colors, reps=reps, budget=budget)
+    if skipped:
+        lines += ["## Left out", "", *(f"- {s.folder}: {s.reason}" for s in skipped), ""]
+    report = folder / "report.md"
+    report.write_text("\n".join(lines))
+    return report
+
+
+def report_roots(
+    roots: Sequence[str | Path],
+    out: str | Path,
+    overwrite: bool = False,
+    reps: int = stats.REPS,
+    matrix_step: int | None = None,
+    log: Callable[[str], None] | None = None,
+) -> Path:
+    """
+    :func:`write_report` for every run under ``roots`` (see :func:`load_runs`); refuses to overwrite an earlier
+    report unless ``overwrite``.
+    """
+    if (Path(out) / "report.md").exists():
+        if not overwrite:
+            raise ValueError(f"{out} already holds a report.md: choose another --out, or pass --overwrite to replace it")
+        # The earlier report's figures go with it: a figure it drew that this one does not would otherwise stay
+        for stale in Path(out).glob("*.png"):
+            stale.unlink()
+    if log is not None:
+        log(f"report: reading the runs under {', '.join(str(root) for root in roots)}")
+    runs, skipped = load_runs(roots)
+    if log is not None:
+        log(f"report: {len(runs)} finished runs, {len(skipped)} folders left out")
+    if not runs:
+        reasons = "".join(f"; {s.folder}: {s.reason}" for s in skipped)
+        raise ValueError(
+            f"no finished runs (<root>/<variant>/<env_name>_<id>/ with its <env_name>/args.yml record and evaluations.npz) "
+            f"under {[str(root) for root in roots]}{reasons}"
+        )
+    return write_report(
+        runs, out, skipped=skipped, reps=reps, matrix_step=matrix_step, sources=[str(root) for root in roots], log=log
+    )
+
+
+def next_report_folder(parent: str | Path, name: str) -> Path:
+    """``<parent>/<name>_<n>`` with the next free ``n`` (from 1), so that a report never replaces another."""
+    parent = Path(parent)
+    taken = [int(p.name.rpartition("_")[2]) for p in parent.glob(f"{name}_*") if p.name.rpartition("_")[2].isdigit()]
+    return parent / f"{name}_{max(taken, default=0) + 1}"

@@ -1,0 +1,149 @@
+"""
+What one training run is (:class:`RunSpec`: an algorithm under a variant's name, on one task and seed, with its
+budget, evaluation settings and resolved hyperparameters) and the checks of its settings made before any run.
+:func:`make_spec` resolves the hyperparameters: the task's entry in ``hyperparams/<algo>.yml``
+(:mod:`~sb3_sera.experiments.registry`), then the variant's or the command line's overrides.
+"""
+
+import platform
+from dataclasses import dataclass, field
+from typing import Any
+
+from sb3_sera.experiments.records import package_versions, plain, source_revision
+from sb3_sera.experiments.registry import check_hyperparams, default_hyperparams
+
+
+@dataclass
+class RunSpec:
+    """One training run: an algorithm under a variant's name, on one task and seed, with resolved hyperparameters."""
+
+    variant: str
+    algo: str
+    env_id: str
+    seed: int
+    n_timesteps: int
+    #: Resolved hyperparameters as written in a zoo YAML entry (``policy`` included, ``n_timesteps`` left out)
+    hyperparams: dict[str, Any] = field(default_factory=dict)
+    eval_freq: int = 1000
+    n_eval_episodes: int = 5
+    #: torch threads of the run's process (None: torch's default)
+    num_threads: int | None = 1
+    device: str = "auto"
+    #: Where the hyperparameters came from
+    hyperparams_source: str = ""
+
+    def run_args(self) -> dict[str, Any]:
+        """The ``args.yml`` entries that, with ``config.yml``, make two runs the same run."""
+        return {
+            "algo": self.algo,
+            "variant": self.variant,
+            "env": self.env_id,
+            "seed": self.seed,
+            "n_timesteps": self.n_timesteps,
+            "eval_freq": self.eval_freq,
+            "eval_episodes": self.n_eval_episodes,
+        }
+
+    def args(self) -> dict[str, Any]:
+        """The run's ``args.yml`` (rl-zoo3's names where the zoo has one): :meth:`run_args`, then how it ran."""
+        return {
+            **self.run_args(),
+            "num_threads": self.num_threads,
+            "device": self.device,
+            "hyperparams_source": self.hyperparams_source,
+            "versions": package_versions(),
+            **source_revision(),
+            "machine": platform.machine(),
+        }
+
+    def config(self) -> dict[str, Any]:
+        """The run's ``config.yml``: the hyperparameters as a zoo YAML entry, with the budget."""
+        return dict(sorted({**self.hyperparams, "n_timesteps": self.n_timesteps}.items()))
+
+    def identity(self) -> dict[str, Any]:
+        """What makes two runs the same run (threads, device and versions do not)."""
+        return {**self.run_args(), "config": plain(self.config())}
+
+
+#: Settings every run engine run checks before any run, whatever its algorithm: key -> (smallest allowed, integer)
+COMMON_RANGES: dict[str, tuple[float, bool]] = {
+    "learning_starts": (0, True),
+    "batch_size": (1, True),
+    "buffer_size": (1, True),
+    "n_envs": (1, True),
+    "n_steps": (1, True),
+}
+
+
+def check_run_settings(spec: "RunSpec") -> None:
+    """
+    Raise ``ValueError`` naming the run and the key for a budget, evaluation setting or common hyperparameter of the
+    wrong type or out of range, and for ``learning_starts`` at or above the budget (the run would train nothing and
+    report an untrained policy as its result).
+    """
+    where = f"{spec.variant} on {spec.env_id}"
+    for key, value, low in (("n_timesteps", spec.n_timesteps, 1), ("eval_freq", spec.eval_freq, 1)):
+        if value < low:
+            raise ValueError(f"{where}: {key}={value} is out of range: it must be an integer >= {low}")
+    if spec.n_eval_episodes < 1:
+        raise ValueError(f"{where}: eval_episodes={spec.n_eval_episodes} is out of range: it must be an integer >= 1")
+    if spec.eval_freq > spec.n_timesteps:
+        raise ValueError(
+            f"{where}: eval_freq={spec.eval_freq} is above the budget n_timesteps={spec.n_timesteps}: the run would "
+            "never be evaluated"
+        )
+    for key, (smallest, integer) in COMMON_RANGES.items():
+        if key not in spec.hyperparams:
+            continue
+        value = spec.hyperparams[key]
+        number = isinstance(value, int | float) and not isinstance(value, bool)
+        if not number or (integer and float(value) != int(value)) or value < smallest:
+            kind = "an integer" if integer else "a number"
+            raise ValueError(f"{where}: {key}={value!r} is invalid: it must be {kind} >= {smallest:g}")
+    learning_starts = spec.hyperparams.get("learning_starts")
+    if learning_starts is not None and learning_starts >= spec.n_timesteps:
+        raise ValueError(
+            f"{where}: learning_starts={learning_starts} is at or above the budget n_timesteps={spec.n_timesteps}: "
+            "the run would train nothing; lower learning_starts (e.g. -params learning_starts:"
+            f"{max(spec.n_timesteps // 10, 1)}) or raise the budget"
+        )
+
+
+def make_spec(
+    variant: str,
+    algo: str,
+    env_id: str,
+    seed: int,
+    n_timesteps: int,
+    overrides: dict[str, Any] | None = None,
+    eval_freq: int = 1000,
+    n_eval_episodes: int = 5,
+    num_threads: int | None = 1,
+    device: str = "auto",
+) -> RunSpec:
+    """
+    A run with the task's hyperparameters from ``hyperparams/<algo>.yml`` (see :func:`default_hyperparams`), then
+    ``overrides``; ``ValueError`` for a key ``algo`` does not take.
+    """
+    from sb3_sera.experiments.zoo import check_algo_task
+
+    check_algo_task(algo, env_id)
+    defaults, source = default_hyperparams(algo, env_id)
+    hyperparams = {**defaults, **(overrides or {})}
+    hyperparams.pop("n_timesteps", None)
+    check_hyperparams(algo, hyperparams, f"{variant} on {env_id}")
+    spec = RunSpec(
+        variant=variant,
+        algo=algo,
+        env_id=env_id,
+        seed=int(seed),
+        n_timesteps=int(n_timesteps),
+        hyperparams=hyperparams,
+        eval_freq=int(eval_freq),
+        n_eval_episodes=int(n_eval_episodes),
+        num_threads=num_threads,
+        device=device,
+        hyperparams_source=source,
+    )
+    check_run_settings(spec)
+    return spec

@@ -1,0 +1,76 @@
+"""What several test files share: the repository's root, the small tasks and settings models are trained with, and
+comparisons of a model's torch state."""
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch as th
+
+#: The repository's top folder (README, docs, notebooks, benchmarks, results, hyperparams)
+ROOT = Path(__file__).resolve().parents[1]
+#: The single-agent task most tests train on
+ENV_ID = "Pendulum-v1"
+#: The multi-agent (CTDE) task most tests train on
+CTDE_TASK = "sb3_sera/SimpleSpread-v0"
+#: Off-policy settings small enough for a test on ``ENV_ID``: training starts after 50 steps, a small buffer
+SMALL = dict(learning_starts=50, batch_size=32, buffer_size=2_000)
+#: The same on ``CTDE_TASK``, with a smaller buffer
+SMALL_CTDE = dict(learning_starts=50, batch_size=32, buffer_size=1_000)
+
+
+def snapshot(model: Any, optimizers: bool = False) -> dict[str, th.Tensor]:
+    """
+    A copy of what a SAC-style model learns: its policy's state (actor, critics, targets), its step-size state where
+    it has one (SERASAC) and its entropy coefficient where it learns one; with ``optimizers``, the state of its actor,
+    critic and entropy coefficient optimizers too (Adam's moments and step counts).
+    """
+    state = {f"policy.{k}": v.clone() for k, v in model.policy.state_dict().items()}
+    if getattr(model, "step_size", None) is not None:
+        state.update({f"step_size.{k}": v.clone() for k, v in model.step_size.state_dict().items()})
+    if model.log_ent_coef is not None:
+        state["log_ent_coef"] = model.log_ent_coef.detach().clone()
+    if optimizers:
+        named = {"actor": model.actor.optimizer, "critic": model.critic.optimizer, "ent_coef": model.ent_coef_optimizer}
+        for name, optimizer in named.items():
+            for index, param_state in ({} if optimizer is None else optimizer.state_dict()["state"]).items():
+                state.update({f"{name}.{index}.{key}": value.clone() for key, value in param_state.items()})
+    return state
+
+
+def assert_same_state(first: dict[str, th.Tensor], second: dict[str, th.Tensor]) -> None:
+    """The two snapshots hold the same tensors under the same names, bit for bit."""
+    assert first.keys() == second.keys()
+    for key in first:
+        assert th.equal(first[key], second[key]), key
+
+
+def assert_close_state(first: dict[str, th.Tensor], second: dict[str, th.Tensor]) -> None:
+    """The two snapshots hold the same tensors under the same names up to float rounding (a compiled step's)."""
+    assert first.keys() == second.keys()
+    for key, value in first.items():
+        np.testing.assert_allclose(value.float(), second[key].float(), rtol=1e-4, atol=1e-5, err_msg=key)
+
+
+def serasac_as_sac(env: Any, optimizer_kwargs: dict[str, Any] | None = None) -> Any:
+    """
+    SERASAC configured as SB3's SAC (two ``[256, 256]`` critics, min target and actor, fixed critic rate, beta = 0):
+    the same losses and updates as SAC; ``optimizer_kwargs`` (None: SERASAC's default, fused Adam).
+    """
+    from sb3_sera import SERASAC
+
+    policy_kwargs: dict[str, Any] = dict(n_critics=2, net_arch=[256, 256])
+    if optimizer_kwargs is not None:
+        policy_kwargs["optimizer_kwargs"] = optimizer_kwargs
+    return SERASAC(
+        "MlpPolicy",
+        env,
+        seed=1,
+        learning_starts=200,
+        batch_size=64,
+        target_aggregation="min",
+        actor_aggregation="min",
+        adaptive_critic_lr=False,
+        disagreement_coef=0.0,
+        policy_kwargs=policy_kwargs,
+    )
