@@ -23,6 +23,7 @@ from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from timing import interleaved_rates, median_iqr
 
 from sb3_sera import ACE, IET, MASAC, SERASAC, SUNRISE
+from sb3_sera.common.mujoco_log import route_mujoco_warnings
 
 ALGORITHMS: dict[str, Callable[..., OffPolicyAlgorithm]] = {
     "SAC": SAC,
@@ -38,6 +39,7 @@ MULTI_AGENT = ["MASAC", "SERASAC", "IET"]
 
 
 def main() -> None:
+    route_mujoco_warnings()  # MuJoCo's warnings through Python's, no MUJOCO_LOG.TXT
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="HalfCheetah-v5")
     parser.add_argument(

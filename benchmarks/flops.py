@@ -16,11 +16,13 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from torch.profiler import ProfilerActivity, profile
 
 from sb3_sera import SERASAC
+from sb3_sera.common.mujoco_log import route_mujoco_warnings
 
 MATMULS = ("aten::mm", "aten::addmm")
 
 
 def main() -> None:
+    route_mujoco_warnings()  # MuJoCo's warnings through Python's, no MUJOCO_LOG.TXT
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="HalfCheetah-v5")
     parser.add_argument("--steps", type=int, default=20, help="profiled gradient steps per model")

@@ -17,6 +17,7 @@ import torch as th
 from stable_baselines3 import SAC
 
 from sb3_sera import SERASAC
+from sb3_sera.common.mujoco_log import route_mujoco_warnings
 
 MIB = 2**20
 
@@ -54,6 +55,7 @@ def _measure(name: str, env_id: str, buffer_size: int, gradient_steps: int, queu
 
 
 def main() -> None:
+    route_mujoco_warnings()  # MuJoCo's warnings through Python's, no MUJOCO_LOG.TXT
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="HalfCheetah-v5")
     parser.add_argument("--buffer-size", type=int, default=300_000)

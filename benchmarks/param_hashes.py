@@ -19,6 +19,7 @@ import torch as th
 from stable_baselines3.common.base_class import BaseAlgorithm
 
 from sb3_sera import ACE, IET, MADDPG, MAPPO, MASAC, MATD3, SERASAC, SUNRISE
+from sb3_sera.common.mujoco_log import route_mujoco_warnings
 
 #: The runs: name -> a function building the seeded model
 RUNS: dict[str, Callable[[], BaseAlgorithm]] = {
@@ -61,6 +62,7 @@ def state_hash(model: BaseAlgorithm) -> str:
 
 
 def main() -> None:
+    route_mujoco_warnings()  # MuJoCo's warnings through Python's, no MUJOCO_LOG.TXT
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--steps", type=int, default=400, help="environment steps of each run")
     args = parser.parse_args()

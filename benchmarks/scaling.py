@@ -25,6 +25,7 @@ from timing import interleaved_rates, median_iqr
 from torch import nn
 
 from sb3_sera import SERASAC
+from sb3_sera.common.mujoco_log import route_mujoco_warnings
 
 CRITIC_GROUP = {"SAC": ("HalfCheetah-v5", None), **{f"K={k}": ("HalfCheetah-v5", k) for k in (2, 5, 10)}}
 AGENT_GROUP = {
@@ -71,6 +72,7 @@ def build(label: str, learning_starts: int) -> BaseAlgorithm:
 
 
 def main() -> None:
+    route_mujoco_warnings()  # MuJoCo's warnings through Python's, no MUJOCO_LOG.TXT
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--blocks", type=int, default=8)
     parser.add_argument("--block-steps", type=int, default=50)

@@ -29,6 +29,7 @@ from timing import interleaved_rates, median_iqr
 
 from sb3_sera import SERASAC
 from sb3_sera.common.compiled import CompileMode, count_graph_breaks
+from sb3_sera.common.mujoco_log import route_mujoco_warnings
 
 
 def _build(
@@ -61,6 +62,7 @@ def _graphs(model: SERASAC, batch_size: int) -> tuple[int, int]:
 
 
 def main() -> None:
+    route_mujoco_warnings()  # MuJoCo's warnings through Python's, no MUJOCO_LOG.TXT
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="HalfCheetah-v5")
     parser.add_argument("--blocks", type=int, default=15, help="timed blocks per algorithm and mode")
