@@ -67,12 +67,18 @@ def compile_model_step(
     """
     A model's gradient step compiled (:func:`compile_step`), and the Adam plans of its optimizers: the actor's, the
     critic's and, when the entropy coefficient is learned, its own (in this order; ``model.actor.optimizer``,
-    ``model.critic.optimizer``, ``model.ent_coef_optimizer``). ``"reduce-overhead"`` needs a CUDA device.
+    ``model.critic.optimizer``, ``model.ent_coef_optimizer``). ``"reduce-overhead"`` needs a CUDA device; gSDE
+    (``use_sde``) is refused.
     """
     if mode == "reduce-overhead" and model.device.type != "cuda":
         raise ValueError(
             f"compile_update='reduce-overhead' replays the gradient step as a CUDA graph and needs device='cuda', got "
             f"device={model.device.type!r}: use compile_update=True"
+        )
+    if getattr(model, "use_sde", False):
+        raise ValueError(
+            "compile_update does not support use_sde=True: gSDE's exploration matrix is drawn outside the gradient "
+            "step with a graph of its own, which the compiled step cannot differentiate through; use one or the other"
         )
     plans = [AdamPlan(model.actor.optimizer, "actor"), AdamPlan(model.critic.optimizer, "critic")]
     if model.ent_coef_optimizer is not None:

@@ -182,7 +182,7 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         (read once per ``train()`` call), and the step that met it and the steps after it change nothing (their
         updates are masked). ``"reduce-overhead"`` also replays the step as a CUDA graph (``device="cuda"``). The
         first gradient step pays the compilation (about a minute on CPU, where it needs a C++ compiler); the
-        optimizers must be Adam or AdamW (the default)
+        optimizers must be Adam or AdamW (the default), and ``use_sde`` stays off
     :param tensorboard_log: the log location for tensorboard (if None, no logging)
     :param policy_kwargs: additional arguments to be passed to the policy on creation, e.g. ``n_critics`` and
         ``critic_archs`` (see :class:`~sb3_sera.sera.policies.SERAPolicy`)
@@ -509,11 +509,7 @@ class SERASAC(NamedRuns, Capabilities, SAC):
             device=self.device,
         )
 
-        def sample() -> ReplayBufferSamples:
-            if self.use_sde:
-                self.actor.reset_noise()
-            return self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
-
+        sample = partial(self.replay_buffer.sample, batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
         outputs: list[CompiledStepOutput] = run_steps(self, sample, learning_rates, gradient_steps)
         logged, critic_rates = read_steps(
             outputs, COMPILED_QUANTITIES, partial(gradient_step_context, self), outputs[-1].critic_rates

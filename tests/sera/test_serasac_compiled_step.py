@@ -141,6 +141,7 @@ def test_the_multi_agent_step_compiles_and_equals_the_eager_one():
         (dict(compile_update="reduce-overhead"), "needs device='cuda'"),
         (dict(compile_update=True, policy_kwargs=dict(optimizer_class=th.optim.SGD)), "th.optim.Adam or th.optim.AdamW"),
         (dict(compile_update="yes"), "compile_update"),
+        (dict(compile_update=True, use_sde=True), "does not support use_sde=True"),
     ],
 )
 def test_compile_settings_that_cannot_work_are_refused(kwargs, message):
