@@ -79,6 +79,16 @@ class CriticUpdate(NamedTuple):
     step_size: StepSizeUpdate
 
 
+#: The SERA diagnostics logged after each ``train()`` call (SPEC section 1), as ``train/<name>``
+DIAGNOSTICS = (
+    "td_target_var",
+    "critic_disagreement",
+    "target_entropy_eff",
+    "q_sera_mean",
+    "q_median_mean",
+    "critic_corr",
+    "td_error_corr",
+)
 #: What a compiled gradient step checks, in the order in which a cause precedes its consequences
 COMPILED_QUANTITIES = (
     "entropy coefficient",
@@ -473,23 +483,20 @@ class SERASAC(NamedRuns, Capabilities, SAC):
             self._critic_step(critic.critic_loss, logged)
             self._actor_step(gradient_step, replay_data.observations, actions_pi, log_prob, ent_coef, logged)
             self._target_step(gradient_step)
-        self._end_train(gradient_steps, critic, target_entropy, critic_rates)
+        self._end_train(gradient_steps, self._diagnostics(critic, target_entropy).tolist(), critic_rates)
         record_means(self.logger, logged)
 
-    def _end_train(
-        self, gradient_steps: int, critic: CriticUpdate, target_entropy: th.Tensor | float, critic_rates: list[float]
-    ) -> None:
-        """Count the updates, log the last step's diagnostics and the critics' rates."""
+    def _end_train(self, gradient_steps: int, diagnostics: list[float], critic_rates: list[float]) -> None:
+        """Count the updates, log the last step's diagnostics (:meth:`_diagnostics`' values) and the critics' rates."""
         self._n_updates += gradient_steps
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
-        self._record_diagnostics(
-            critic.target_q_values,
-            critic.next_q_values,
-            critic.next_q_aggregate,
-            critic.current_q_values.detach(),
-            target_entropy,
-            critic.step_size,
-        )
+        n_critics = self.critic.n_critics
+        names = [
+            *(f"train/{name}" for name in DIAGNOSTICS),
+            *(f"train/{prefix}_{index}" for prefix in ("kappa", "P", "R") for index in range(n_critics)),
+        ]
+        for name, value in zip(names, diagnostics, strict=True):
+            self.logger.record(name, value)
         for index, rate in enumerate(critic_rates):
             self.logger.record(f"train/critic_lr_{index}", rate)
 
@@ -511,15 +518,20 @@ class SERASAC(NamedRuns, Capabilities, SAC):
 
         sample = partial(self.replay_buffer.sample, batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
         outputs: list[CompiledStepOutput] = run_steps(self, sample, learning_rates, gradient_steps)
-        logged, critic_rates = read_steps(
-            outputs, COMPILED_QUANTITIES, partial(gradient_step_context, self), outputs[-1].critic_rates
+        last = outputs[-1]
+        logged, values = read_steps(
+            outputs,
+            COMPILED_QUANTITIES,
+            partial(gradient_step_context, self),
+            th.cat([last.critic_rates, self._diagnostics(last.critic, last.target_entropy)]),
         )
+        critic_rates, diagnostics = values[: self.critic.n_critics], values[self.critic.n_critics :]
         if self.adaptive_critic_lr:
             self._update_critic_learning_rates(critic_rates)
         names = ["ent_coef", "critic_loss", "actor_loss", *(["ent_coef_loss"] if self.ent_coef_optimizer else [])]
         for name, value in zip(names, logged, strict=True):
             self.logger.record(f"train/{name}", value)
-        self._end_train(gradient_steps, outputs[-1].critic, outputs[-1].target_entropy, critic_rates)
+        self._end_train(gradient_steps, diagnostics, critic_rates)
 
     def _gradient_step(
         self,
@@ -710,43 +722,26 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         assert index is not None
         return q_values.gather(1, index.unsqueeze(1))
 
-    def _record_diagnostics(
-        self,
-        target_q_values: th.Tensor,
-        next_q_values: th.Tensor,
-        next_q_aggregate: th.Tensor,
-        current_q_values: th.Tensor,
-        target_entropy: th.Tensor | float,
-        update: StepSizeUpdate,
-    ) -> None:
-        """Record the SERA diagnostics of the last gradient step (SPEC section 1) with one device transfer."""
+    def _diagnostics(self, critic: CriticUpdate, target_entropy: th.Tensor | float) -> th.Tensor:
+        """
+        The SERA diagnostics of a gradient step (SPEC section 1) on the device, to be read in one transfer: the
+        values of :data:`DIAGNOSTICS`, then each critic's ``kappa``, ``P`` and ``R`` in turn, shape ``(7 + 3K,)``.
+        """
         with th.no_grad():
+            current_q_values = critic.current_q_values.detach()
             scalars = th.stack(
                 [
-                    batch_variance(target_q_values).squeeze(0),
+                    batch_variance(critic.target_q_values).squeeze(0),
                     ensemble_disagreement(current_q_values).mean(),
                     th.as_tensor(target_entropy, dtype=th.float32, device=self.device).mean(),
-                    next_q_aggregate.mean(),
-                    median_anchor(next_q_values)[0].mean(),
+                    critic.next_q_aggregate.mean(),
+                    median_anchor(critic.next_q_values)[0].mean(),
                     critic_correlation(current_q_values),
-                    td_error_correlation(target_q_values - current_q_values),
+                    td_error_correlation(critic.target_q_values - current_q_values),
                 ]
-            ).tolist()
-            per_critic = th.stack([update.kappa, update.estimation_var, update.measurement_var]).tolist()
-        names = (
-            "td_target_var",
-            "critic_disagreement",
-            "target_entropy_eff",
-            "q_sera_mean",
-            "q_median_mean",
-            "critic_corr",
-            "td_error_corr",
-        )
-        for name, value in zip(names, scalars, strict=True):
-            self.logger.record(f"train/{name}", value)
-        for prefix, values in zip(("kappa", "P", "R"), per_critic, strict=True):
-            for index, value in enumerate(values):
-                self.logger.record(f"train/{prefix}_{index}", value)
+            )
+            update = critic.step_size
+            return th.cat([scalars, update.kappa, update.estimation_var, update.measurement_var])
 
     def _excluded_save_params(self) -> list[str]:
         return [
