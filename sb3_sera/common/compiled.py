@@ -187,14 +187,14 @@ def all_finite(tensors: Sequence[th.Tensor]) -> th.Tensor:
 def count_graph_breaks(model: Any, step: Callable[..., Any], batch: Any) -> tuple[int, int]:
     """
     Trace ``step``, the body of ``model``'s compiled gradient step (:func:`compile_model_step`), on a replayed
-    ``batch`` with Dynamo as :func:`compile_step` does (``torch._dynamo.explain``, which runs it once, every update
-    masked: the model is left as it was) and return its number of graphs and of graph breaks: ``(1, 0)`` for a step
-    compiled whole.
+    ``batch`` and the model's own learning rates (``model._step_learning_rates()``) with Dynamo as
+    :func:`compile_step` does (``torch._dynamo.explain``, which runs it once, every update masked: the model is left
+    as it was) and return its number of graphs and of graph breaks: ``(1, 0)`` for a step compiled whole.
     """
     with th._dynamo.config.patch(trace_autograd_ops=True):
         explanation = th._dynamo.explain(step)(
             batch,
-            learning_rates=th.full((3,), 3e-4, device=model.device),
+            learning_rates=model._step_learning_rates(),
             target_update=th.tensor(True, device=model.device),
             healthy=th.tensor(False, device=model.device),
             states=[plan.state() for plan in model._adam_plans],

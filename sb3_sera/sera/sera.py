@@ -506,18 +506,8 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         once, after the last step. A non-finite value raises ``FloatingPointError`` naming the first one; its step
         and those after it changed nothing.
         """
-        entropy_rate = self.ent_coef_optimizer.param_groups[0]["lr"] if self.ent_coef_optimizer is not None else 0.0
-        learning_rates = th.tensor(
-            [
-                self.actor.optimizer.param_groups[0]["lr"],
-                entropy_rate,
-                self.critic_lr_schedule(self._current_progress_remaining),
-            ],
-            device=self.device,
-        )
-
         sample = partial(self.replay_buffer.sample, batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
-        outputs: list[CompiledStepOutput] = run_steps(self, sample, learning_rates, gradient_steps)
+        outputs: list[CompiledStepOutput] = run_steps(self, sample, self._step_learning_rates(), gradient_steps)
         last = outputs[-1]
         logged, values = read_steps(
             outputs,
@@ -532,6 +522,18 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         for name, value in zip(names, logged, strict=True):
             self.logger.record(f"train/{name}", value)
         self._end_train(gradient_steps, diagnostics, critic_rates)
+
+    def _step_learning_rates(self) -> th.Tensor:
+        """The compiled step's ``learning_rates``: the actor's, the entropy coefficient's (0 when fixed), the critics' cap."""
+        entropy_rate = self.ent_coef_optimizer.param_groups[0]["lr"] if self.ent_coef_optimizer is not None else 0.0
+        return th.tensor(
+            [
+                self.actor.optimizer.param_groups[0]["lr"],
+                entropy_rate,
+                self.critic_lr_schedule(self._current_progress_remaining),
+            ],
+            device=self.device,
+        )
 
     def _gradient_step(
         self,

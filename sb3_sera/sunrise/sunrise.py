@@ -442,14 +442,19 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
         self.actor.optimizer.step()
         return self._logged(losses, actor_loss)
 
+    def _step_learning_rates(self) -> th.Tensor:
+        """The compiled step's ``learning_rates``: each Adam plan's current rate, in the plans' order."""
+        return th.tensor([plan.optimizer.param_groups[0]["lr"] for plan in self._adam_plans], device=self.device)
+
     def _train_compiled(self, gradient_steps: int, batch_size: int) -> None:
         """
         :meth:`train`'s steps through the compiled :meth:`_gradient_step_graph`, read from the device once, after the
         last step. A non-finite value raises ``FloatingPointError`` naming the first one; its step and those after it
         changed nothing.
         """
-        learning_rates = th.tensor([plan.optimizer.param_groups[0]["lr"] for plan in self._adam_plans], device=self.device)
-        outputs: list[CompiledStepOutput] = run_steps(self, partial(self._sample, batch_size), learning_rates, gradient_steps)
+        outputs: list[CompiledStepOutput] = run_steps(
+            self, partial(self._sample, batch_size), self._step_learning_rates(), gradient_steps
+        )
         logged, _ = read_steps(outputs, COMPILED_QUANTITIES, partial(gradient_step_context, self), th.zeros(0))
         for name, value in zip(LOGGED, logged, strict=False):
             self.logger.record(f"train/{name}", value)
