@@ -24,9 +24,11 @@ install: $(STAMP)
 demo: install
 	$(PY) -m sb3_sera compare
 
-# The test suite without the long learning checks (what CI runs)
+# The test suite without the long learning checks (what CI runs), in TEST_WORKERS pytest-xdist processes with one
+# torch thread each (tests/conftest.py); TEST_WORKERS=0 runs it in this process, with torch's default threads
+TEST_WORKERS ?= 2
 test: install
-	$(PY) -m pytest -m "not slow"
+	$(PY) -m pytest -m "not slow" -n $(TEST_WORKERS)
 
 test-slow: install
 	$(PY) -m pytest -m slow

@@ -6,8 +6,15 @@ import sys
 from collections.abc import Callable
 
 import pytest
+import torch
 
 from sb3_sera.common.mujoco_log import route_mujoco_warnings
+
+# In a pytest-xdist worker (`make test` runs two), one torch thread, and one OpenMP thread for every command and
+# notebook kernel a test starts: never more busy threads than workers.
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    os.environ["OMP_NUM_THREADS"] = "1"
+    torch.set_num_threads(1)
 
 
 @pytest.fixture(autouse=True, scope="session")
