@@ -29,16 +29,27 @@ def algorithm_classes() -> dict[str, type[BaseAlgorithm]]:
     return {**ALGOS, **ZOO_ALGOS}
 
 
-def hyperparams_file(algo: str) -> Path:
-    """The YAML file ``sb3-sera train --algo <algo>`` reads: this package's, else rl-zoo3's own."""
+def _entries(path: Path) -> dict[str, Any]:
+    return (yaml.safe_load(path.read_text()) or {}) if path.exists() else {}
+
+
+def hyperparams_file(algo: str, env_id: str | None = None) -> Path:
+    """
+    The YAML file ``sb3-sera train --algo <algo> --env <env_id>`` reads: this package's where it has an entry for the
+    task (or no task is named), else rl-zoo3's own. The package's ``sac.yml`` names only the paper's tasks, so stock
+    SAC on any other task keeps rl-zoo3's entries.
+    """
     from sb3_sera.experiments.zoo import HYPERPARAMS_DIR
 
     ours = Path(HYPERPARAMS_DIR) / f"{algo}.yml"
-    if ours.exists():
-        return ours
     import rl_zoo3
 
-    return Path(rl_zoo3.__file__).parent / "hyperparams" / f"{algo}.yml"
+    zoo = Path(rl_zoo3.__file__).parent / "hyperparams" / f"{algo}.yml"
+    if not ours.exists():
+        return zoo
+    if env_id is None or not zoo.exists() or env_id in _entries(ours):
+        return ours
+    return zoo
 
 
 def default_hyperparams(algo: str, env_id: str) -> tuple[dict[str, Any], str]:
@@ -48,15 +59,15 @@ def default_hyperparams(algo: str, env_id: str) -> tuple[dict[str, Any], str]:
     :return: the entry, and where it came from (``"<file>:<key>"``, or a sentence saying the algorithm's own
         defaults apply because no file has an entry)
     """
-    path = hyperparams_file(algo)
-    entries = yaml.safe_load(path.read_text()) if path.exists() else {}
+    path = hyperparams_file(algo, env_id)
+    entries = _entries(path)
     # Named as the repository holds it (hyperparams/serasac.yml; rl-zoo3's: rl_zoo3/hyperparams/sac.yml), never by
     # the absolute path of this machine
     from sb3_sera.experiments.zoo import HYPERPARAMS_DIR
 
     where = f"hyperparams/{path.name}" if path.parent == HYPERPARAMS_DIR else f"rl_zoo3/hyperparams/{path.name}"
     for key in (env_id, "default"):
-        if key in (entries or {}):
+        if key in entries:
             return dict(entries[key]), f"{where}:{key}"
     return {}, f"no entry for {env_id} in {where}: the algorithm's defaults"
 

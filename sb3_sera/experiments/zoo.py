@@ -18,6 +18,7 @@ from sb3_sera.ace import ACE
 from sb3_sera.common.capabilities import capabilities
 from sb3_sera.ctde.algorithms import MADDPG, MAPPO, MASAC, MATD3
 from sb3_sera.experiments.evaluation import InitialStateBiasCallback
+from sb3_sera.experiments.registry import hyperparams_file
 from sb3_sera.iet import IET
 from sb3_sera.sera import SERASAC
 from sb3_sera.sunrise import SUNRISE
@@ -187,7 +188,8 @@ def _flag_value(argv: Sequence[str], *names: str) -> str | None:
 def zoo_argv(command: str, argv: Sequence[str]) -> list[str]:
     """
     The zoo's arguments for ``command``: ``optimize`` is ``train -optimize``, and ``train``/``optimize`` read the
-    package's ``hyperparams/<algo>.yml`` unless ``--conf-file`` is given.
+    package's ``hyperparams/<algo>.yml`` where it has the task (``registry.hyperparams_file``) unless ``--conf-file``
+    is given.
     """
     args = list(argv)
     if command not in ZOO_COMMANDS:
@@ -196,9 +198,11 @@ def zoo_argv(command: str, argv: Sequence[str]) -> list[str]:
         args.append("-optimize")
     if command in ("train", "optimize"):
         algo = _flag_value(args, "--algo") or "ppo"
-        check_algo_task(algo, _flag_value(args, "--env"))
-        if _flag_value(args, "-conf", "--conf-file") is None and (HYPERPARAMS_DIR / f"{algo}.yml").exists():
-            args += ["--conf-file", str(HYPERPARAMS_DIR / f"{algo}.yml")]
+        env_id = _flag_value(args, "--env")
+        check_algo_task(algo, env_id)
+        conf_file = hyperparams_file(algo, env_id)
+        if _flag_value(args, "-conf", "--conf-file") is None and conf_file.parent == HYPERPARAMS_DIR:
+            args += ["--conf-file", str(conf_file)]
     return args
 
 
