@@ -1,45 +1,79 @@
 """
-Parameter hashes of a short seeded run of every algorithm of the package: a restructuring that keeps what the
-algorithms compute must print the same hashes before and after (on the same machine and versions).
+Code identity: a hash of what each trained configuration's code computes, so that runs made at different commits are
+pooled only where their code trains the same.
 
-    OMP_NUM_THREADS=1 python benchmarks/param_hashes.py            # one line per algorithm: name, steps, hash
-    OMP_NUM_THREADS=1 python benchmarks/param_hashes.py --steps 600
+For every configuration in the ledger (a variant on a task with its recorded hyperparameters, ``config.yml``), a short
+seeded run at those settings: seed 0, one torch thread, ``learning_starts`` lowered to 256 and the replay buffer to
+10,000 (neither changes the update's arithmetic before the buffer wraps), 400 environment steps, so 144 gradient
+steps through every branch the configuration takes (its aggregation, the adaptive or fixed critic rate, the CTDE
+step, delayed actor updates, action noise). The hash is SHA-256 (16 hex digits) of the policy's parameters and
+buffers and of every optimizer's state after it. Two commits that print the same hash for a configuration train it
+identically on this machine with these package versions.
 
-Each run: seed 0, one torch thread, ``learning_starts=100``, small batches, the policy's and (where it has one) the
-optimizers' state hashed with SHA-256 (first 16 hex digits), after ``--steps`` environment steps.
+    OMP_NUM_THREADS=1 python benchmarks/param_hashes.py                      # the working tree, every configuration
+    OMP_NUM_THREADS=1 python benchmarks/param_hashes.py --ledger-commits     # the ledger's commits as well
+    OMP_NUM_THREADS=1 python benchmarks/param_hashes.py --ledger-commits --write results/code_hashes.yml
+
+``--ledger-commits`` checks out every commit the ledger's runs name into a temporary git worktree and hashes there
+(this script, run against that commit's package). ``--write`` stores the table in the ledger, where the report reads
+it to flag a group whose runs' code trains differently (``sb3_sera.experiments.identity``).
 """
 
 import argparse
+import ast
 import hashlib
+import json
+import os
+import subprocess
+import sys
+import tempfile
 import warnings
-from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch as th
-from stable_baselines3.common.base_class import BaseAlgorithm
+import yaml
 
-from sb3_sera import ACE, IET, MADDPG, MAPPO, MASAC, MATD3, SERASAC, SUNRISE
-from sb3_sera.common.mujoco_log import route_mujoco_warnings
-
-#: The runs: name -> a function building the seeded model
-RUNS: dict[str, Callable[[], BaseAlgorithm]] = {
-    "SERASAC HalfCheetah-v5": lambda: SERASAC("MlpPolicy", "HalfCheetah-v5", seed=0, learning_starts=100, batch_size=64),
-    "SERASAC SimpleSpread": lambda: SERASAC(
-        "CTDEPolicy", "sb3_sera/SimpleSpread-v0", seed=0, learning_starts=100, batch_size=64
-    ),
-    "MASAC SimpleSpread": lambda: MASAC("CTDEPolicy", "sb3_sera/SimpleSpread-v0", seed=0, learning_starts=100, batch_size=64),
-    "MATD3 SimpleSpread": lambda: MATD3("CTDEPolicy", "sb3_sera/SimpleSpread-v0", seed=0, learning_starts=100, batch_size=64),
-    "MADDPG SimpleSpread": lambda: MADDPG(
-        "CTDEPolicy", "sb3_sera/SimpleSpread-v0", seed=0, learning_starts=100, batch_size=64
-    ),
-    "MAPPO SimpleSpread": lambda: MAPPO("CTDEPolicy", "sb3_sera/SimpleSpread-v0", seed=0, n_steps=128, batch_size=64),
-    "IET SimpleSpread": lambda: IET("CTDEPolicy", "sb3_sera/SimpleSpread-v0", seed=0, learning_starts=100, batch_size=64),
-    "SUNRISE Pendulum-v1": lambda: SUNRISE("MlpPolicy", "Pendulum-v1", seed=0, learning_starts=100, batch_size=64),
-    "ACE Pendulum-v1": lambda: ACE("MlpPolicy", "Pendulum-v1", seed=0, learning_starts=100, batch_size=64),
-}
+ROOT = Path(__file__).resolve().parents[1]
+#: Keys of a zoo entry that describe the run, not the algorithm's constructor
+RUN_KEYS = ("n_timesteps", "policy", "n_envs", "env_kwargs", "noise_type", "noise_std")
+#: The short run's schedule
+LEARNING_STARTS, BUFFER_SIZE, STEPS = 256, 10_000, 400
 
 
-def state_hash(model: BaseAlgorithm) -> str:
+def configurations(ledger: Path) -> dict[str, dict[str, Any]]:
+    """Every distinct (variant, task, hyperparameters) of the ledger by its key, with the commits that ran it."""
+    from sb3_sera.experiments.identity import configuration_key
+
+    found: dict[str, dict[str, Any]] = {}
+    for args_file in sorted(ledger.glob("*/*/*/args.yml")):
+        args = yaml.safe_load(args_file.read_text())
+        config = yaml.safe_load((args_file.parent / "config.yml").read_text())
+        key = configuration_key(args["variant"], args["env"], config)
+        entry = found.setdefault(key, {"algo": args["algo"], "env": args["env"], "config": config, "commits": []})
+        if args.get("git_commit") and args["git_commit"] not in entry["commits"]:
+            entry["commits"].append(args["git_commit"])
+    return found
+
+
+def literal(value: Any) -> Any:
+    """A zoo value: ``dict(net_arch=[256, 256])`` and other literals parsed without evaluating code."""
+    if not isinstance(value, str):
+        return value
+
+    def convert(node: ast.AST) -> Any:
+        if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "dict" and not node.args:
+            return {keyword.arg: convert(keyword.value) for keyword in node.keywords}
+        return ast.literal_eval(node)
+
+    try:
+        return convert(ast.parse(value, mode="eval").body)
+    except (SyntaxError, ValueError):
+        return value
+
+
+def state_hash(model: Any) -> str:
     """SHA-256 (16 hex digits) of the policy's parameters and buffers, then of every optimizer's state."""
     digest = hashlib.sha256()
 
@@ -61,17 +95,92 @@ def state_hash(model: BaseAlgorithm) -> str:
     return digest.hexdigest()[:16]
 
 
+def hash_configuration(algo: str, env_id: str, config: dict[str, Any]) -> str:
+    """The short seeded run of one configuration (see the module's docstring) and its hash."""
+    import gymnasium as gym
+    from rl_zoo3.utils import ALGOS
+    from stable_baselines3.common.noise import NormalActionNoise
+
+    import sb3_sera
+    from sb3_sera.experiments.zoo import ZOO_ALGOS
+
+    assert Path(sb3_sera.__file__).resolve().is_relative_to(Path(os.environ.get("HASH_TREE", ROOT)).resolve())
+    kwargs = {key: literal(value) for key, value in config.items() if key not in RUN_KEYS}
+    kwargs.update(learning_starts=LEARNING_STARTS, buffer_size=BUFFER_SIZE)
+    env = gym.make(env_id)
+    if config.get("noise_type") is not None:
+        if config["noise_type"] != "normal":
+            raise ValueError(f"{algo} on {env_id}: noise_type {config['noise_type']!r} is not hashed here")
+        assert isinstance(env.action_space, gym.spaces.Box)
+        n_actions = env.action_space.shape[0]
+        kwargs["action_noise"] = NormalActionNoise(
+            np.zeros(n_actions), float(config.get("noise_std", 0.1)) * np.ones(n_actions)
+        )
+    model = {**ALGOS, **ZOO_ALGOS}[algo](config.get("policy", "MlpPolicy"), env, seed=0, device="cpu", **kwargs)
+    model.learn(STEPS)
+    return state_hash(model)
+
+
+def hash_tree(tree: Path, found: dict[str, dict[str, Any]]) -> dict[str, str]:
+    """Every configuration hashed with the package of ``tree``: this script in a child process, fed on stdin."""
+    done = subprocess.run(
+        [sys.executable, str(Path(__file__).resolve()), "--child"],
+        cwd=tree,
+        input=json.dumps(found),
+        env={**os.environ, "PYTHONPATH": str(tree), "HASH_TREE": str(tree), "OMP_NUM_THREADS": "1"},
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    if done.returncode != 0:
+        raise RuntimeError(f"hashing at {tree} failed:\n{done.stderr[-3000:]}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
 def main() -> None:
-    route_mujoco_warnings()  # MuJoCo's warnings through Python's, no MUJOCO_LOG.TXT
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--steps", type=int, default=400, help="environment steps of each run")
+    parser.add_argument("--ledger", default=str(ROOT / "results"), help="the ledger whose configurations are hashed")
+    parser.add_argument("--ledger-commits", action="store_true", help="also hash at every commit the ledger names")
+    parser.add_argument("--write", default=None, help="store the table (YAML) here: the ledger's code_hashes.yml")
+    parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
-    th.set_num_threads(1)
-    warnings.filterwarnings("ignore")
-    for name, make in RUNS.items():
-        model = make()
-        model.learn(args.steps)
-        print(f"{name:<24} {args.steps:>5} {state_hash(model)}")
+    if args.child:
+        # One commit's package: the configurations come on stdin, the hashes go out as one JSON line
+        th.set_num_threads(1)
+        warnings.filterwarnings("ignore")
+        found = json.loads(sys.stdin.read())
+        print(json.dumps({key: hash_configuration(e["algo"], e["env"], e["config"]) for key, e in found.items()}))
+        return
+    found = configurations(Path(args.ledger))
+    head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
+    columns: dict[str, dict[str, str]] = {"working tree": hash_tree(ROOT, found)}
+    if args.ledger_commits:
+        commits = sorted({commit for entry in found.values() for commit in entry["commits"]})
+        for commit in commits:
+            with tempfile.TemporaryDirectory() as folder:
+                tree = Path(folder) / "tree"
+                subprocess.run(
+                    ["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tree), commit], check=True, capture_output=True
+                )
+                try:
+                    columns[commit] = hash_tree(tree, found)
+                finally:
+                    subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], check=True)
+    print(f"working tree: {head[:10]}; {STEPS} steps, learning_starts {LEARNING_STARTS}, one thread")
+    print("| configuration | " + " | ".join(name[:10] for name in columns) + " |")
+    print("|---|" + "---|" * len(columns))
+    for key, entry in found.items():
+        # A commit the configuration ran at is marked *
+        cells = [f"{column[key]}{' *' if name in entry['commits'] else ''}" for name, column in columns.items()]
+        print(f"| {key} | " + " | ".join(cells) + " |")
+    if args.write:
+        table = {
+            "settings": {"steps": STEPS, "learning_starts": LEARNING_STARTS, "buffer_size": BUFFER_SIZE, "threads": 1},
+            "versions": {"torch": th.__version__, "python": sys.version.split()[0]},
+            "hashes": {commit: column for commit, column in columns.items() if commit != "working tree"},
+        }
+        Path(args.write).write_text(yaml.safe_dump(table, sort_keys=True))
+        print(f"written: {args.write}")
 
 
 if __name__ == "__main__":

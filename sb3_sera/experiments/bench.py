@@ -13,11 +13,15 @@ The grid file::
     eval_freq: 5000          # optional, default n_timesteps / 10
     eval_episodes: 5         # optional
     hyperparams: {learning_starts: 5000}   # optional overrides for every variant (a variant's own values win)
+    studies: [batch_size]    # optional: shared settings the arms may differ in (the grid is about them)
 
 Each run starts from the task's entry in ``hyperparams/<algo>.yml`` (as ``sb3-sera train``), then the grid's
-``hyperparams``, then the variant's own values. Everything is checked before the first run starts (each variant's
-model is built once on each task). Each run writes its rl-zoo3-style folder ``<out>/<variant>/<env_name>_<id>/``
-with its records; a finished run is never run again, so an interrupted grid resumes.
+``hyperparams``, then the variant's own values. The variants compared on a task must share the settings every
+comparison holds fixed (``learning_starts``, ``batch_size``, ``buffer_size``, ``gamma``, ``tau``, ``train_freq``,
+``gradient_steps``, the budget and the evaluations) unless ``studies`` names them. Everything is checked before the
+first run starts (each variant's model is built once on each task). Each run writes its rl-zoo3-style folder
+``<out>/<variant>/<env_name>_<id>/`` with its records; a finished run is never run again, so an interrupted grid
+resumes.
 """
 
 from pathlib import Path
@@ -29,9 +33,9 @@ from sb3_sera.experiments.backends import execute
 from sb3_sera.experiments.engine import check_specs
 from sb3_sera.experiments.records import RunResult
 from sb3_sera.experiments.registry import algorithm_classes, check_task
-from sb3_sera.experiments.specs import RunSpec, make_spec
+from sb3_sera.experiments.specs import RunSpec, check_matched, make_spec
 
-GRID_KEYS = {"algorithms", "tasks", "seeds", "n_timesteps", "eval_freq", "eval_episodes", "hyperparams"}
+GRID_KEYS = {"algorithms", "tasks", "seeds", "n_timesteps", "eval_freq", "eval_episodes", "hyperparams", "studies"}
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):
@@ -85,6 +89,9 @@ def read_grid(path: str | Path) -> dict[str, Any]:
             check_task(task)
         except ValueError as error:
             raise ValueError(f"{path}: {error}") from None
+    studies = grid.get("studies") or []
+    if not isinstance(studies, list) or not all(isinstance(key, str) for key in studies):
+        raise ValueError(f"{path}: studies: {studies!r} is not a list of setting names (e.g. studies: [batch_size])")
     if not isinstance(grid.get("hyperparams") or {}, dict):
         raise ValueError(f"{path}: hyperparams: {grid['hyperparams']!r} is not a mapping of hyperparameters")
     return grid
@@ -145,6 +152,7 @@ def load_grid(path: str | Path, num_threads: int | None = 1, device: str = "auto
                     raise ValueError(f"{path}: variant {error}") from None
                 specs.append(spec)
     check_specs(specs)
+    check_matched(specs, grid.get("studies") or [], str(path))
     return specs
 
 

@@ -30,25 +30,40 @@ Every summary is computed per run first, then compared across runs: a critic's i
   earns, so the raw bias would favour the policy that learns least.
 - ``auc``: the normalized area under the learning curve (Fig. 4b).
 
-Verdicts: *supported* when the interval lies wholly on the side the paper claims, *not supported* when it lies wholly
-on the other side, *inconclusive at this n* when it contains zero, and *too few runs* when a side has fewer than
-:data:`MIN_RUNS` runs (no interval is computed then).
+- ``final_return``: the mean of the last :data:`~sb3_sera.experiments.records.FINAL_EVALUATIONS` evaluations'
+  mean returns; ``abs_bias`` and ``signed_bias``: ``|V(s0) - G|`` and ``V(s0) - G`` in return units (the paper's
+  Fig. 4a), ``target_var``: the raw ``Var(y)`` (the paper's Fig. 4c), ``value_corr``: the critics' mean off-diagonal
+  value correlation (the paper's Fig. 5).
+
+A claim (:class:`Claim`) names a task, a budget, a measure, two arms and the claimed direction, and whether it is
+primary; a ledger declares its claims in ``results/claims.yml`` (:func:`load_claims`) before the runs that decide
+them, and a report of other runs tests :func:`default_claims`, all exploratory. :func:`evaluate` decides them: only
+arms whose shared settings match are compared; the size is the difference of means with its Welch t-interval, the
+test an exact permutation test; the primary claims' p-values are Holm-adjusted as one family (a declared primary
+claim not yet tested counts with p = 1). Verdicts at :data:`ALPHA`: *supported* when p is below it and the difference
+lies on the claimed side, *contradicted* when below it on the other side, *inconclusive* otherwise, and *too few
+runs* when an arm has fewer than :data:`MIN_RUNS` runs with the measure.
 """
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import yaml
 
 from sb3_sera.experiments import stats
 from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sb3_sera.experiments.records import NPZ_ERRORS, RunResult
+from sb3_sera.experiments.registry import shared_settings, unmatched_settings, unmatched_text
 
-#: Runs each side needs before an interval or a verdict is given
+#: Runs each arm needs before a test or a verdict is given
 MIN_RUNS = 3
 #: The variant the claims are about
 SERA = "serasac"
+#: Level of every test
+ALPHA = 0.05
 
 
 def load_diagnostics(run: RunResult) -> dict[str, np.ndarray] | None:
@@ -116,15 +131,11 @@ def target_relative_variance(run: RunResult) -> float | None:
     if records is None or "td_target_relative_var" not in records:
         return None
     late = records["timesteps"] >= run.n_timesteps / 2
-    return float(np.mean(records["td_target_relative_var"][late]))
+    return float(np.mean(records["td_target_relative_var"][late])) if late.any() else None
 
 
-def relative_bias(run: RunResult) -> float | None:
-    """
-    The initial-state bias relative to the returns' scale, over the evaluations after ``learning_starts``:
-    ``sum_t |mean V(s0) - mean G|`` over ``sum_t |mean G|`` (a policy that earns more has larger values and larger
-    errors in the same units; a ratio of sums stays defined where a return crosses zero).
-    """
+def _bias_after_start(run: RunResult) -> tuple[np.ndarray, np.ndarray] | None:
+    """Per evaluation after ``learning_starts``: the mean ``V(s0)`` and the mean discounted return ``G``."""
     path = Path(run.folder) / BIAS_FILE
     if not path.exists():
         return None
@@ -134,10 +145,48 @@ def relative_bias(run: RunResult) -> float | None:
     except NPZ_ERRORS:
         return None
     after = steps > float(run.hyperparams.get("learning_starts", 0))
-    scale = np.abs(returns[after].mean(axis=1)).sum()
-    if not after.any() or scale == 0:
+    if not after.any():
         return None
-    return float(np.abs(values[after].mean(axis=1) - returns[after].mean(axis=1)).sum() / scale)
+    return values[after].mean(axis=1), returns[after].mean(axis=1)
+
+
+def relative_bias(run: RunResult) -> float | None:
+    """
+    The initial-state bias relative to the returns' scale, over the evaluations after ``learning_starts``:
+    ``sum_t |mean V(s0) - mean G|`` over ``sum_t |mean G|`` (a policy that earns more has larger values and larger
+    errors in the same units; a ratio of sums stays defined where a return crosses zero).
+    """
+    bias = _bias_after_start(run)
+    if bias is None or np.abs(bias[1]).sum() == 0:
+        return None
+    values, returns = bias
+    return float(np.abs(values - returns).sum() / np.abs(returns).sum())
+
+
+def abs_bias(run: RunResult) -> float | None:
+    """``|mean V(s0) - mean G|`` averaged over the evaluations after ``learning_starts``, in return units."""
+    bias = _bias_after_start(run)
+    return None if bias is None else float(np.abs(bias[0] - bias[1]).mean())
+
+
+def signed_bias(run: RunResult) -> float | None:
+    """``mean V(s0) - mean G`` averaged over the evaluations after ``learning_starts`` (below 0: underestimation)."""
+    bias = _bias_after_start(run)
+    return None if bias is None else float((bias[0] - bias[1]).mean())
+
+
+def target_variance(run: RunResult) -> float | None:
+    """The TD target's batch variance ``Var(y)`` averaged over the evaluations of the second half of training."""
+    records = load_diagnostics(run)
+    if records is None or "td_target_var" not in records:
+        return None
+    late = records["timesteps"] >= run.n_timesteps / 2
+    return float(np.mean(records["td_target_var"][late])) if late.any() else None
+
+
+def final_return(run: RunResult) -> float | None:
+    """The run's final return (the mean of its last evaluations: :attr:`RunResult.final_return`)."""
+    return run.final_return
 
 
 def auc(run: RunResult) -> float | None:
@@ -146,159 +195,308 @@ def auc(run: RunResult) -> float | None:
 
 
 @dataclass(frozen=True)
-class Claim:
-    """One of the paper's claims: SERA's ``summary`` is lower (``lower=True``) or higher than each baseline's."""
+class Measure:
+    """A per-run summary a claim compares."""
 
-    figure: str
-    text: str
-    summary_name: str
     summary: Callable[[RunResult], float | None]
-    lower: bool
-    baselines: tuple[str, ...]
+    #: What it is, for the tables
+    text: str
+    #: In the units the paper plots (True) or a scale-free form of ours (False)
+    paper_units: bool
 
 
-#: The baselines of the adaptive step size: a fixed critic rate, at ``learning_rate`` and at SERA's mean rate
-NO_LR = ("sera_nolr", "sera_nolr_matched")
+MEASURES: dict[str, Measure] = {
+    "final_return": Measure(final_return, "final return (mean of the last 3 evaluations)", True),
+    "auc": Measure(auc, "normalized AUC", True),
+    "abs_bias": Measure(abs_bias, "abs(V(s0) - G) after learning_starts", True),
+    "relative_bias": Measure(relative_bias, "sum abs(V(s0) - G) / sum abs(G) after learning_starts", False),
+    "target_var": Measure(target_variance, "Var(y), second half of training", True),
+    "target_relative_var": Measure(target_relative_variance, "Var(y) / mean(y^2), second half of training", False),
+    "value_corr": Measure(last_diagnostic("critic_corr"), "critics' value correlation, last evaluation", True),
+    "td_error_corr": Measure(last_diagnostic("td_error_corr"), "critics' TD-error correlation, last evaluation", False),
+    "mc_error_corr": Measure(last_diagnostic("mc_error_corr"), "critics' MC-error correlation, last evaluation", False),
+    "relative_disagreement": Measure(relative_disagreement, "relative disagreement, last evaluation", False),
+    "closest_pair": Measure(closest_pair, "closest pair, last evaluation", False),
+}
+#: The claim fields of a claims file, and which must be given
+CLAIM_FIELDS = ("id", "source", "task", "n_timesteps", "measure", "arm", "baseline", "direction", "primary")
+REQUIRED_FIELDS = ("id", "task", "n_timesteps", "measure", "arm", "baseline", "direction")
+DIRECTIONS = ("higher", "lower")
 
-CLAIMS = (
-    Claim(
-        figure="Fig. 5",
-        text="the adaptive step size decorrelates the critics' TD errors",
-        summary_name="td_error_corr at the last evaluation",
-        summary=last_diagnostic("td_error_corr"),
-        lower=True,
-        baselines=NO_LR,
-    ),
-    Claim(
-        figure="Fig. 5",
-        text="the adaptive step size decorrelates the critics' errors against Monte Carlo returns",
-        summary_name="mc_error_corr at the last evaluation",
-        summary=last_diagnostic("mc_error_corr"),
-        lower=True,
-        baselines=NO_LR,
-    ),
-    Claim(
-        figure="Fig. 5",
-        text="the adaptive step size keeps the critics apart",
-        summary_name="relative_disagreement at the last evaluation",
-        summary=relative_disagreement,
-        lower=False,
-        baselines=NO_LR,
-    ),
-    Claim(
-        figure="Fig. 5",
-        text="with a fixed step size some critics become near duplicates",
-        summary_name="closest_pair at the last evaluation",
-        summary=closest_pair,
-        lower=False,
-        baselines=NO_LR,
-    ),
-    Claim(
-        figure="Fig. 4c",
-        text="SERA's TD target has the lowest normalised variance",
-        summary_name="Var(y) / mean(y^2), second half of training",
-        summary=target_relative_variance,
-        lower=True,
-        baselines=("sac", "ensemble_mean", "masac"),
-    ),
-    Claim(
-        figure="Fig. 4a",
-        text="SERA has the smallest initial-state bias",
-        summary_name="sum abs(V(s0) - G) / sum abs(G) after learning_starts",
-        summary=relative_bias,
-        lower=True,
-        baselines=("sac", "ensemble_mean", "sera_nolr", "masac", "matd3", "maddpg"),
-    ),
-    Claim(
-        figure="Fig. 4b",
-        text="each part of SERA adds to its learning",
-        summary_name="normalized AUC",
-        summary=auc,
-        lower=False,
-        baselines=("sera_nolr", "sera_nolr_matched", "sera_median", "ensemble_mean"),
-    ),
+
+@dataclass(frozen=True)
+class Claim:
+    """That ``arm``'s ``measure`` is ``direction`` than ``baseline``'s on ``task`` at ``n_timesteps`` steps."""
+
+    id: str
+    task: str
+    n_timesteps: int
+    measure: str
+    arm: str
+    baseline: str
+    direction: str
+    primary: bool = False
+    #: Where the paper makes the claim (a figure or table)
+    source: str = ""
+
+
+def load_claims(path: str | Path) -> list[Claim]:
+    """
+    The claims a file declares (``results/claims.yml``: a mapping with ``claims``, a list of mappings with
+    :data:`CLAIM_FIELDS`); ``ValueError`` naming the claim and the field for anything else.
+    """
+    try:
+        document = yaml.safe_load(Path(path).read_text())
+    except yaml.YAMLError as error:
+        raise ValueError(f"{path}: not YAML: {' '.join(str(error).split())}") from None
+    if not isinstance(document, dict) or not isinstance(document.get("claims"), list):
+        raise ValueError(f"{path}: a claims file is a mapping whose 'claims' is a list of claims")
+    claims, seen = [], set()
+    for index, entry in enumerate(document["claims"]):
+        where = f"{path}: claim {index + 1}"
+        if not isinstance(entry, dict):
+            raise ValueError(f"{where}: {entry!r} is not a mapping with {list(CLAIM_FIELDS)}")
+        where = f"{path}: claim {entry.get('id', index + 1)!r}"
+        unknown = sorted(set(entry) - set(CLAIM_FIELDS))
+        missing = [key for key in REQUIRED_FIELDS if key not in entry]
+        if unknown or missing:
+            raise ValueError(f"{where}: unknown field(s) {unknown}, missing {missing}; fields: {list(CLAIM_FIELDS)}")
+        if entry["measure"] not in MEASURES:
+            raise ValueError(f"{where}: unknown measure {entry['measure']!r}; measures: {sorted(MEASURES)}")
+        if entry["direction"] not in DIRECTIONS:
+            raise ValueError(f"{where}: direction {entry['direction']!r} is not one of {list(DIRECTIONS)}")
+        if entry["id"] in seen:
+            raise ValueError(f"{where}: the id is declared twice")
+        seen.add(entry["id"])
+        claims.append(
+            Claim(
+                id=str(entry["id"]),
+                task=str(entry["task"]),
+                n_timesteps=int(entry["n_timesteps"]),
+                measure=str(entry["measure"]),
+                arm=str(entry["arm"]),
+                baseline=str(entry["baseline"]),
+                direction=str(entry["direction"]),
+                primary=bool(entry.get("primary", False)),
+                source=str(entry.get("source", "")),
+            )
+        )
+    return claims
+
+
+#: The claims a report of any runs tests where they have the variants (all exploratory): measure, direction of
+#: SERA's against each baseline, the baselines, the paper's figure
+DEFAULT_CLAIMS = (
+    ("final_return", "higher", ("sac", "ensemble_mean", "masac", "sera_nolr", "sera_median"), "Tables 1-2"),
+    ("auc", "higher", ("sera_nolr", "sera_nolr_matched", "sera_median", "ensemble_mean"), "Fig. 4b"),
+    ("abs_bias", "lower", ("sac", "ensemble_mean", "sera_nolr", "masac", "matd3", "maddpg"), "Fig. 4a"),
+    ("relative_bias", "lower", ("sac", "ensemble_mean", "sera_nolr", "masac", "matd3", "maddpg"), "Fig. 4a"),
+    ("target_var", "lower", ("sac", "ensemble_mean", "masac"), "Fig. 4c"),
+    ("target_relative_var", "lower", ("sac", "ensemble_mean", "masac"), "Fig. 4c"),
+    ("value_corr", "lower", ("sera_nolr", "sera_nolr_matched"), "Fig. 5"),
+    ("td_error_corr", "lower", ("sera_nolr", "sera_nolr_matched"), "Fig. 5"),
+    ("mc_error_corr", "lower", ("sera_nolr", "sera_nolr_matched"), "Fig. 5"),
+    ("relative_disagreement", "higher", ("sera_nolr", "sera_nolr_matched"), "Fig. 5"),
+    ("closest_pair", "higher", ("sera_nolr", "sera_nolr_matched"), "Fig. 5"),
 )
 
 
-def mean_difference_interval(sample: np.ndarray, baseline: np.ndarray, reps: int = stats.REPS) -> tuple[float, float, float]:
+def default_claims(groups: Sequence[Any]) -> list[Claim]:
+    """The :data:`DEFAULT_CLAIMS` whose two variants have runs at one task and budget among ``groups``."""
+    present = {(group.variant, group.env_id, group.n_timesteps) for group in groups}
+    claims = []
+    for env_id, budget in dict.fromkeys((group.env_id, group.n_timesteps) for group in groups):
+        if (SERA, env_id, budget) not in present:
+            continue
+        for measure, direction, baselines, source in DEFAULT_CLAIMS:
+            claims += [
+                Claim(f"{measure}-{baseline}", env_id, budget, measure, SERA, baseline, direction, source=source)
+                for baseline in baselines
+                if (baseline, env_id, budget) in present
+            ]
+    return claims
+
+
+def group_settings(group: Any) -> dict[str, Any]:
+    """A report group's shared settings: :func:`~sb3_sera.experiments.registry.shared_settings` and evaluations."""
+    evaluation = {key: group.hyperparams[key] for key in ("eval_freq", "eval_episodes") if key in group.hyperparams}
+    return {**shared_settings(group.algo, group.hyperparams), **evaluation}
+
+
+@dataclass
+class ClaimResult:
+    """What the runs say of one claim."""
+
+    claim: Claim
+    arm_values: np.ndarray
+    baseline_values: np.ndarray
+    difference: float | None = None
+    low: float | None = None
+    high: float | None = None
+    p_value: float | None = None
+    #: Holm-adjusted over the primary family (primary claims only)
+    adjusted_p: float | None = None
+    verdict: str = "waiting for runs"
+    #: Why there is no test, or which settings group was used
+    note: str = ""
+
+
+def _matched_groups(claim: Claim, groups: Sequence[Any]) -> tuple[Any, Any, str]:
+    """The claim's two arms as report groups with the same shared settings, or (None, None, why not)."""
+    arms = [g for g in groups if (g.variant, g.env_id, g.n_timesteps) == (claim.arm, claim.task, claim.n_timesteps)]
+    baselines = [g for g in groups if (g.variant, g.env_id, g.n_timesteps) == (claim.baseline, claim.task, claim.n_timesteps)]
+    if not arms or not baselines:
+        missing = [name for name, found in ((claim.arm, arms), (claim.baseline, baselines)) if not found]
+        return None, None, f"no runs of {' or '.join(missing)}"
+    pairs = [
+        (a, b)
+        for a in arms
+        for b in baselines
+        if not unmatched_settings({claim.arm: group_settings(a), claim.baseline: group_settings(b)})
+    ]
+    if not pairs:
+        differing = unmatched_settings({claim.arm: group_settings(arms[0]), claim.baseline: group_settings(baselines[0])})
+        return None, None, f"unmatched: {unmatched_text(differing)}"
+    arm, baseline = max(pairs, key=lambda pair: (len(pair[0].runs), len(pair[1].runs)))
+    others = len(arms) + len(baselines) - 2
+    return arm, baseline, (f"matched settings groups ({others} other group(s) left out)" if others else "")
+
+
+def evaluate(claims: Sequence[Claim], groups: Sequence[Any], alpha: float = ALPHA) -> list[ClaimResult]:
     """
-    ``mean(sample) - mean(baseline)`` with its 95% percentile bootstrap interval (runs resampled within each side,
-    seeded with :data:`stats.BOOTSTRAP_SEED`).
-
-    :return: the difference, lower and upper bounds
+    Decide every claim on the report groups (:func:`~sb3_sera.experiments.report.groups.group_runs`): see the
+    module's docstring.
     """
-    rng = np.random.default_rng(stats.BOOTSTRAP_SEED)
-    resampled = sample[rng.integers(0, len(sample), (reps, len(sample)))].mean(axis=1) - baseline[
-        rng.integers(0, len(baseline), (reps, len(baseline)))
-    ].mean(axis=1)
-    tail = (1.0 - stats.CONFIDENCE) / 2 * 100
-    low, high = np.percentile(resampled, [tail, 100 - tail])
-    return float(sample.mean() - baseline.mean()), float(low), float(high)
+    results = []
+    for claim in claims:
+        arm, baseline, note = _matched_groups(claim, groups)
+        summary = MEASURES[claim.measure].summary
+        values = [
+            np.array([v for v in map(summary, group.runs) if v is not None], dtype=float)
+            if group is not None
+            else np.array([])
+            for group in (arm, baseline)
+        ]
+        result = ClaimResult(claim, values[0], values[1], note=note)
+        if arm is not None:
+            if min(len(values[0]), len(values[1])) < MIN_RUNS:
+                result.verdict = f"too few runs (< {MIN_RUNS})"
+                if len(values[0]) and len(values[1]):
+                    result.difference = float(values[0].mean() - values[1].mean())
+            else:
+                result.difference, result.low, result.high = stats.welch_interval(values[0], values[1])
+                result.p_value = stats.permutation_p_value(values[0], values[1])
+        results.append(result)
+    primary = [result for result in results if result.claim.primary]
+    adjusted = stats.holm_adjusted([1.0 if r.p_value is None else r.p_value for r in primary]) if primary else []
+    for result, p_adjusted in zip(primary, adjusted, strict=True):
+        if result.p_value is not None:
+            result.adjusted_p = p_adjusted
+    for result in results:
+        p = result.adjusted_p if result.claim.primary else result.p_value
+        if p is None or result.difference is None:
+            continue
+        claimed_side = result.difference < 0 if result.claim.direction == "lower" else result.difference > 0
+        result.verdict = ("supported" if claimed_side else "contradicted") if p < alpha else "inconclusive"
+    return results
 
 
-def verdict(low: float, high: float, lower: bool) -> str:
-    """*supported*, *not supported* or *inconclusive at this n* for an interval of SERA minus a baseline."""
-    if (high < 0) if lower else (low > 0):
-        return "supported"
-    if (low > 0) if lower else (high < 0):
-        return "not supported"
-    return "inconclusive at this n"
-
-
-def _format(value: float) -> str:
+def _format(value: float | None) -> str:
+    if value is None:
+        return ""
     return f"{value:.3g}" if abs(value) < 1000 else f"{value:.0f}"
 
 
-def claims_table(groups: dict[str, list[RunResult]], reps: int = stats.REPS) -> list[str]:
-    """
-    The claims whose variants are present in one task and budget: a Markdown table with a row per (claim, baseline).
+def _p_text(value: float | None) -> str:
+    return "" if value is None else f"{value:.4f}" if value >= 0.0001 else "< 0.0001"
 
-    :param groups: the section's runs by variant (one settings group each)
-    :return: the table's lines (empty when SERA or every baseline is missing)
-    """
-    if SERA not in groups:
+
+def claims_table(results: Sequence[ClaimResult], primary: bool) -> list[str]:
+    """A Markdown table of ``results`` (primary claims with their Holm-adjusted p), with its legend."""
+    if not results:
         return []
+    holm = " | Holm p" if primary else ""
     lines = [
-        "| claim | measure (per run) | SERA vs | n | SERA mean | baseline mean | difference [95% CI] | verdict |",
-        "|---|---|---|---|---|---|---|---|",
+        f"| claim | source | measure (per run) | units | SERA vs | n | SERA mean | baseline mean "
+        f"| difference [95% Welch CI] | permutation p{holm} | verdict |",
+        "|---|---|---|---|---|---|---|---|---|---|---|" + ("---|" if primary else ""),
     ]
-    rows = 0
-    for claim in CLAIMS:
-        sera = np.array([v for v in map(claim.summary, groups[SERA]) if v is not None])
-        for baseline_name in claim.baselines:
-            if baseline_name not in groups or len(sera) == 0:
-                continue
-            baseline = np.array([v for v in map(claim.summary, groups[baseline_name]) if v is not None])
-            if len(baseline) == 0:
-                continue
-            direction = "lower" if claim.lower else "higher"
-            if min(len(sera), len(baseline)) < MIN_RUNS:
-                difference, result = f"{_format(float(sera.mean() - baseline.mean()))}", f"too few runs (< {MIN_RUNS})"
-            else:
-                point, low, high = mean_difference_interval(sera, baseline, reps)
-                difference = f"{_format(point)} [{_format(low)}, {_format(high)}]"
-                result = verdict(low, high, claim.lower)
-            lines.append(
-                f"| {claim.figure}: {claim.text} (SERA {direction}) | {claim.summary_name} | {baseline_name} "
-                f"| {len(sera)} vs {len(baseline)} | {_format(float(sera.mean()))} | {_format(float(baseline.mean()))} "
-                f"| {difference} | {result} |"
-            )
-            rows += 1
-    if rows == 0:
+    for result in results:
+        claim, measure = result.claim, MEASURES[result.claim.measure]
+        interval = (
+            f"{_format(result.difference)} [{_format(result.low)}, {_format(result.high)}]"
+            if result.low is not None
+            else _format(result.difference)
+        )
+        arm_mean = _format(float(result.arm_values.mean())) if len(result.arm_values) else ""
+        base_mean = _format(float(result.baseline_values.mean())) if len(result.baseline_values) else ""
+        verdict = result.verdict + (f" ({result.note})" if result.note else "")
+        holm_cell = f" | {_p_text(result.adjusted_p)}" if primary else ""
+        lines.append(
+            f"| {claim.id}: SERA {claim.direction} | {claim.source} | {measure.text} "
+            f"| {'paper' if measure.paper_units else 'scale-free'} | {claim.baseline} "
+            f"| {len(result.arm_values)} vs {len(result.baseline_values)} | {arm_mean} | {base_mean} | {interval} "
+            f"| {_p_text(result.p_value)}{holm_cell} | {verdict} |"
+        )
+    return lines
+
+
+def claims_legend(n_primary: int) -> str:
+    """What the claims tables' columns and verdicts are."""
+    family = (
+        f" The primary claims are one family of {n_primary}: their p-values are Holm-adjusted over it (a primary claim "
+        "not yet tested counts with p = 1) and their verdicts read the adjusted p."
+        if n_primary
+        else ""
+    )
+    return (
+        "Difference: SERA's mean minus the baseline's over per-run measures, with its 95% Welch t-interval. "
+        "Permutation p: two-sided, exact over every split of the pooled runs. Units: 'paper' is the measure the paper "
+        "plots, 'scale-free' our form of it normalised by the returns' or targets' scale. Verdict at alpha "
+        f"{ALPHA}: supported when p < alpha with the difference on the claimed side, contradicted when p < alpha on "
+        f"the other side, inconclusive otherwise; no test below {MIN_RUNS} runs an arm. Only arms whose shared settings "
+        f"match are compared.{family} See `sb3_sera/experiments/claims.py` for each measure."
+    )
+
+
+def claims_section(results: Sequence[ClaimResult], n_primary: int = 0) -> list[str]:
+    """The primary claims' table, then the exploratory claims' (labelled so), and the legend."""
+    primary = [r for r in results if r.claim.primary]
+    exploratory = [r for r in results if not r.claim.primary]
+    lines: list[str] = []
+    if primary:
+        lines += [
+            "Primary claims (declared before the runs that decide them; Holm-adjusted):",
+            "",
+            *claims_table(primary, True),
+            "",
+        ]
+    if exploratory:
+        lines += ["Exploratory claims (not corrected for multiplicity):", "", *claims_table(exploratory, False), ""]
+    return [*lines, claims_legend(n_primary)] if lines else []
+
+
+def bias_lines(groups: Sequence[Any]) -> list[str]:
+    """Per group, the initial-state bias in the paper's signed form and in magnitude, after ``learning_starts``."""
+    rows = []
+    for group in groups:
+        signed = [v for v in map(signed_bias, group.runs) if v is not None]
+        if not signed:
+            continue
+        magnitude = [v for v in map(abs_bias, group.runs) if v is not None]
+        relative = [v for v in map(relative_bias, group.runs) if v is not None]
+        rows.append(
+            f"| {group.label} | {len(signed)} | {np.mean(signed):.1f} ± {stats.sample_std(signed):.1f} "
+            f"| {np.mean(magnitude):.1f} | {np.mean(relative):.3f} | {sum(v < 0 for v in signed)} of {len(signed)} |"
+        )
+    if not rows:
         return []
     return [
-        *lines,
+        "| variant | n | V(s0) - G (mean ± std) | abs(V(s0) - G) | relative bias | runs underestimating |",
+        "|---|---|---|---|---|---|",
+        *rows,
         "",
-        f"Difference: SERA's mean minus the baseline's, over per-run summaries; [a, b]: 95% percentile bootstrap "
-        f"interval, runs resampled within each side, {reps} resamples. Verdict: supported when the interval lies "
-        "wholly on the claimed side of zero, not supported when wholly on the other, inconclusive when it holds zero; "
-        f"no interval with fewer than {MIN_RUNS} runs a side. See `sb3_sera/experiments/claims.py` for each measure.",
+        "Initial-state bias per run, averaged over the evaluations after learning_starts: V(s0) - G is what the paper's "
+        "Fig. 4a plots (below 0: the critics underestimate the discounted return G of the evaluation episodes), its "
+        "magnitude in return units, and the magnitude over the returns' scale.",
     ]
-
-
-def claims_section(variants_runs: Sequence[tuple[str, list[RunResult]]], reps: int = stats.REPS) -> list[str]:
-    """:func:`claims_table` from ``(variant, runs)`` pairs, keeping variants with one settings group only."""
-    counts: dict[str, int] = {}
-    for variant, _ in variants_runs:
-        counts[variant] = counts.get(variant, 0) + 1
-    return claims_table({variant: runs for variant, runs in variants_runs if counts[variant] == 1}, reps)

@@ -36,6 +36,7 @@ def _compare(args: argparse.Namespace) -> None:
         n_jobs=args.n_jobs,
         num_threads=args.num_threads,
         device=args.device,
+        studies=args.studies,
     )
     _print_report(results, out=args.out, name=env_name(args.env), reps=args.reps)
 
@@ -116,6 +117,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="overrides of hyperparams/<algo>.yml: key:value for every algorithm (learning_starts:1000), "
         "algo:key:value for one (serasac:sera_alpha:0.3); all checked before the first run",
+    )
+    comp.add_argument(
+        "--studies",
+        nargs="+",
+        default=[],
+        help="shared settings the algorithms may differ in (learning_starts, batch_size, ...); every other shared "
+        "setting must be the same for all, or the comparison is refused naming it",
     )
     _add_run_flags(comp)
     comp.set_defaults(func=_compare)

@@ -14,7 +14,7 @@ from sb3_sera.experiments.backends import default_threads, execute
 from sb3_sera.experiments.engine import check_specs
 from sb3_sera.experiments.records import RunResult
 from sb3_sera.experiments.registry import algorithm_classes, check_task
-from sb3_sera.experiments.specs import make_spec
+from sb3_sera.experiments.specs import check_matched, make_spec
 
 #: Default quick comparison: a task that SAC solves in a few thousand steps
 DEFAULT_ENV = "Pendulum-v1"
@@ -68,6 +68,7 @@ def run_comparison(
     num_threads: int | None = None,
     device: str = "auto",
     progress_bar: bool = True,
+    studies: Sequence[str] = (),
 ) -> list[RunResult]:
     """
     Train every algorithm on every seed, ``n_jobs`` runs at a time (default: one per core). Every setting is checked
@@ -76,6 +77,8 @@ def run_comparison(
     :param params: overrides for every algorithm
     :param algo_params: overrides per algorithm (they win over ``params``)
     :param num_threads: torch threads per run (default: the cores divided among the ``n_jobs`` runs)
+    :param studies: shared settings the algorithms may differ in (every other one must be the same for all:
+        :func:`~sb3_sera.experiments.specs.check_matched`)
     :return: the results, ordered as ``algos`` x ``seeds``
     """
     known = algorithm_classes()
@@ -107,4 +110,5 @@ def run_comparison(
         for seed in seeds
     ]
     check_specs(specs)
+    check_matched(specs, studies)
     return execute(specs, out_dir, n_jobs=n_jobs, progress_bar=progress_bar)

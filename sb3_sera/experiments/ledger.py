@@ -24,12 +24,17 @@ from typing import Any
 
 import yaml
 
+from sb3_sera.experiments.claims import Claim, claims_section, default_claims, evaluate, load_claims
 from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
+from sb3_sera.experiments.identity import identity_lines, load_code_hashes
 from sb3_sera.experiments.records import RESULT_FILE, RunResult, env_name, read_record, run_ids
 from sb3_sera.experiments.report import Skipped, group_runs, load_runs, run_folders, section_table, write_report
+from sb3_sera.experiments.report.write import section_claims
 
 #: The ledger's folder, at the top of the repository
 LEDGER_DIR = "results"
+#: The claims a ledger declares, in its folder
+CLAIMS_FILE = "claims.yml"
 #: Where the full report from the ledger goes
 DOCS_DIR = "docs/results"
 #: The README's generated results lie between these lines
@@ -66,6 +71,12 @@ def study_runs(env_id: str, n_timesteps: int, variants: Sequence[str], ledger: s
     """The ledger's finished runs of ``variants`` on one task and budget (see :func:`find_ledger`)."""
     runs, _ = load_runs([find_ledger() if ledger is None else ledger])
     return [run for run in runs if run.env_id == env_id and run.n_timesteps == n_timesteps and run.variant in variants]
+
+
+def study_claims(env_id: str, n_timesteps: int, ledger: str | Path | None = None) -> list[Claim] | None:
+    """The claims the ledger declares about one task and budget (None where it declares none: see :func:`ledger_claims`)."""
+    claims = ledger_claims(find_ledger() if ledger is None else ledger)
+    return None if claims is None else [c for c in claims if (c.task, c.n_timesteps) == (env_id, n_timesteps)]
 
 
 def run_identity(folder: Path) -> str:
@@ -146,29 +157,46 @@ def _sections(runs: Sequence[RunResult]) -> dict[tuple[str, int], list[Any]]:
     return sections
 
 
+def ledger_claims(ledger: str | Path = LEDGER_DIR) -> list[Claim] | None:
+    """The claims the ledger declares (``<ledger>/claims.yml``), or None where it declares none."""
+    path = Path(ledger) / CLAIMS_FILE
+    return load_claims(path) if path.exists() else None
+
+
 def readme_block(ledger: str | Path = LEDGER_DIR, reps: int = LEDGER_REPS, docs: str = DOCS_DIR) -> str:
     """
-    The README's results, from the ledger alone: per task and budget, the report's table and the paper's mechanism
-    claims with their verdicts, and links to the figures of ``docs/results/``.
+    The README's results, from the ledger alone: the primary claims with their verdicts, then per task and budget
+    the report's table and a count of the exploratory claims' verdicts, with links to ``docs/results/``, which holds
+    the exploratory claims and the figures.
     """
-    from sb3_sera.experiments.claims import claims_section
-
     runs, skipped = load_runs([ledger])
     lines = [BEGIN, ""]
     if not runs:
         lines += ["The ledger holds no finished run yet.", ""]
-    for (env_id, budget), groups in _sections(runs).items():
-        commits = sorted({_commit(run) for group in groups for run in group.runs})
+    groups = group_runs(runs)
+    claims = ledger_claims(ledger)
+    hashes = load_code_hashes(ledger)
+    decided = evaluate(claims if claims is not None else default_claims(groups), groups)
+    n_primary = sum(result.claim.primary for result in decided)
+    if n_primary:
+        lines += [*claims_section([r for r in decided if r.claim.primary], n_primary), ""]
+    for (env_id, budget), section in _sections(runs).items():
+        commits = sorted({_commit(run) for group in section for run in group.runs})
         lines += [
             f"**{env_id}, {budget:,} steps** (code at {', '.join(f'`{c}`' for c in commits)}; figures in "
             f"[{docs}/report.md]({docs}/report.md))",
             "",
-            *section_table(groups, reps),
+            *section_table(section, reps),
             "",
         ]
-        claims = claims_section([(group.variant, group.runs) for group in groups], reps)
-        if claims:
-            lines += ["The paper's mechanism claims on these runs:", "", *claims, ""]
+        identity = identity_lines(section, hashes) if hashes is not None else []
+        if identity:
+            lines += ["Code identity of groups run at several commits (`results/code_hashes.yml`):", "", *identity, ""]
+        exploratory = [r for r in section_claims(decided, env_id, budget) if not r.claim.primary]
+        if exploratory:
+            verdicts = [r.verdict for r in exploratory]
+            counts = ", ".join(f"{verdicts.count(v)} {v}" for v in dict.fromkeys(verdicts))
+            lines += [f"Exploratory claims on these runs ({counts}): [{docs}/report.md]({docs}/report.md).", ""]
     if skipped:
         # Named inside the ledger, never by the absolute path of the machine that made the block
         names = [f"{Path(ledger).name}/{Path(s.folder).relative_to(ledger).as_posix()}" for s in skipped]
@@ -222,7 +250,15 @@ def write_results(
     docs = Path(docs)
     for stale in docs.glob("*.png"):
         stale.unlink()
-    report = write_report(runs, docs, skipped, reps=reps, sources=[str(ledger)])
+    report = write_report(
+        runs,
+        docs,
+        skipped,
+        reps=reps,
+        sources=[str(ledger)],
+        claims=ledger_claims(ledger),
+        code_hashes=load_code_hashes(ledger),
+    )
     readme = Path(readme)
     readme.write_text(replace_block(readme.read_text(), readme_block(ledger, reps, docs.as_posix())))
     return report, readme

@@ -31,6 +31,9 @@ from sb3_sera.experiments.evaluation import BIAS_FILE, initial_state_bias
 VERSIONED = ("sb3-sera", "stable-baselines3", "sb3-contrib", "rl-zoo3", "torch", "gymnasium", "gymnasium-robotics")
 #: File that marks a run as finished (written last)
 RESULT_FILE = "result.json"
+#: Evaluations whose mean is a run's final return: one evaluation of a few episodes moves by hundreds from one
+#: evaluation to the next on MuJoCo tasks, the last three average three times the episodes over the last stretch
+FINAL_EVALUATIONS = 3
 #: What reading a damaged ``.npz`` record raises
 NPZ_ERRORS = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile)
 
@@ -125,7 +128,7 @@ class RunResult:
     seed: int
     n_timesteps: int
     wall_time_s: float
-    #: Mean return of the last evaluation
+    #: Mean return of the last :data:`FINAL_EVALUATIONS` evaluations (of all, for a run evaluated fewer times)
     final_return: float
     timesteps: list[int] = field(default_factory=list)
     #: Mean evaluation return at each of ``timesteps``
@@ -201,7 +204,7 @@ def load_result(folder: Path) -> RunResult:
         seed=int(args["seed"]),
         n_timesteps=budget,
         wall_time_s=wall_time,
-        final_return=float(returns[-1]),
+        final_return=float(np.mean(returns[-FINAL_EVALUATIONS:])),
         timesteps=timesteps,
         returns=[float(r) for r in returns],
         initial_state_bias=bias,

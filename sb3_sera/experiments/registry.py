@@ -5,6 +5,7 @@ file, else rl-zoo3's own), with the keys each algorithm accepts.
 """
 
 import inspect
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +19,9 @@ RUN_KEYS = ("n_timesteps", "policy", "n_envs", "env_kwargs", "noise_type", "nois
 ZOO_ONLY_KEYS = ("normalize", "normalize_kwargs", "env_wrapper", "vec_env_wrapper", "frame_stack", "callback")
 #: Keys a run's settings never take (the engine sets them)
 ENGINE_KEYS = ("policy", "env", "seed", "verbose", "device", "tensorboard_log", "_init_setup_model")
+#: The settings two arms of a comparison share unless it studies them (beside the budget and the evaluations, which
+#: a grid or a ``compare`` command sets for every arm at once)
+SHARED_SETTINGS = ("learning_starts", "batch_size", "buffer_size", "gamma", "tau", "train_freq", "gradient_steps")
 
 
 def algorithm_classes() -> dict[str, type[BaseAlgorithm]]:
@@ -76,6 +80,66 @@ def accepted_hyperparams(algo: str) -> set[str]:
     """What a run of ``algo`` may set: the algorithm's constructor arguments and rl-zoo3's run keys."""
     signature = inspect.signature(algorithm_classes()[algo])
     return (set(signature.parameters) - set(ENGINE_KEYS)) | (set(RUN_KEYS) - {"n_timesteps"})
+
+
+def algorithm_default(algo: str, key: str) -> Any:
+    """The default of ``key`` in the constructor of ``algo`` (rl-zoo3's name), or "unknown"."""
+    model_class = algorithm_classes().get(algo)
+    if model_class is None:
+        return "unknown"
+    parameter = inspect.signature(model_class).parameters.get(key)
+    return "unknown" if parameter is None or parameter.default is inspect.Parameter.empty else parameter.default
+
+
+def shared_settings(algo: str, hyperparams: dict[str, Any]) -> dict[str, Any]:
+    """
+    The :data:`SHARED_SETTINGS` a run of ``algo`` trains with: its hyperparameters', else the algorithm's defaults.
+    An on-policy algorithm shares ``gamma`` alone (its ``batch_size`` is a minibatch of a rollout, not a replay
+    sample), and a setting the algorithm does not take is left out.
+    """
+    from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+
+    takes = accepted_hyperparams(algo)
+    if not issubclass(algorithm_classes()[algo], OffPolicyAlgorithm):
+        takes &= {"gamma"}
+    return {
+        key: plain_value(hyperparams[key]) if key in hyperparams else algorithm_default(algo, key)
+        for key in SHARED_SETTINGS
+        if key in takes
+    }
+
+
+def plain_value(value: Any) -> Any:
+    """A setting as compared: a whole float as an int (``1e4`` equals ``10000``), a tuple as a list."""
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    if isinstance(value, tuple | list):
+        return [plain_value(item) for item in value]
+    return value
+
+
+def unmatched_settings(settings: dict[str, dict[str, Any]], studied: Sequence[str] = ()) -> dict[str, dict[str, Any]]:
+    """
+    The shared settings whose values differ between arms, leaving out those ``studied``.
+
+    :param settings: per arm (a variant's name), its :func:`shared_settings` (with the budget and evaluation settings
+        where the caller compares those too)
+    :return: per differing setting, each arm's value (an arm that does not take the setting is left out)
+    """
+    keys = sorted({key for values in settings.values() for key in values} - set(studied))
+    differing = {}
+    for key in keys:
+        values = {arm: values[key] for arm, values in settings.items() if key in values}
+        if len({repr(value) for value in values.values()}) > 1:
+            differing[key] = values
+    return differing
+
+
+def unmatched_text(differing: dict[str, dict[str, Any]]) -> str:
+    """``key: arm=value, arm=value; ...`` for :func:`unmatched_settings`."""
+    return "; ".join(
+        f"{key}: {', '.join(f'{arm}={value}' for arm, value in values.items())}" for key, values in differing.items()
+    )
 
 
 def check_hyperparams(algo: str, hyperparams: dict[str, Any], where: str) -> None:

@@ -6,11 +6,19 @@ budget, evaluation settings and resolved hyperparameters) and the checks of its 
 """
 
 import platform
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from sb3_sera.experiments.records import package_versions, plain, source_revision
-from sb3_sera.experiments.registry import check_hyperparams, default_hyperparams
+from sb3_sera.experiments.registry import (
+    SHARED_SETTINGS,
+    check_hyperparams,
+    default_hyperparams,
+    shared_settings,
+    unmatched_settings,
+    unmatched_text,
+)
 
 
 @dataclass
@@ -147,3 +155,40 @@ def make_spec(
     )
     check_run_settings(spec)
     return spec
+
+
+def check_matched(specs: Sequence[RunSpec], studies: Sequence[str] = (), where: str = "the comparison") -> None:
+    """
+    Raise ``ValueError`` where the arms compared on one task differ in a shared setting
+    (:data:`~sb3_sera.experiments.registry.SHARED_SETTINGS`, the budget, the evaluations) that the comparison does
+    not declare in ``studies``, naming the setting and each arm's value: results of arms trained with other settings
+    than each other's say nothing about the algorithms.
+
+    :param studies: the settings the comparison is about (they may differ between arms)
+    """
+    unknown = sorted(set(studies) - {*SHARED_SETTINGS, "n_timesteps", "eval_freq", "eval_episodes"})
+    if unknown:
+        raise ValueError(
+            f"{where}: studies names {unknown}, not shared settings; allowed: "
+            f"{[*SHARED_SETTINGS, 'n_timesteps', 'eval_freq', 'eval_episodes']}"
+        )
+    by_task: dict[str, dict[str, dict[str, Any]]] = {}
+    for spec in specs:
+        by_task.setdefault(spec.env_id, {}).setdefault(
+            spec.variant,
+            {
+                **shared_settings(spec.algo, spec.hyperparams),
+                "n_timesteps": spec.n_timesteps,
+                "eval_freq": spec.eval_freq,
+                "eval_episodes": spec.n_eval_episodes,
+            },
+        )
+    for env_id, settings in by_task.items():
+        differing = unmatched_settings(settings, studies)
+        if differing:
+            raise ValueError(
+                f"{where}: the arms on {env_id} differ in {unmatched_text(differing)}. A comparison's arms share these "
+                f"settings unless it studies them: give every arm the same value (a grid's hyperparams, or -params "
+                f"key:value for every algorithm), or declare the setting under study (a grid's studies: "
+                f"[{', '.join(differing)}], or compare --studies {' '.join(differing)})"
+            )

@@ -59,6 +59,18 @@ def test_bad_grids_are_refused_before_any_run(tmp_path, replace, message):
     assert not (tmp_path / "out").exists()
 
 
+def test_arms_that_differ_in_a_shared_setting_are_refused_unless_studied(tmp_path):
+    unmatched = GRID.replace("ensemble_mean: {algo: serasac, target_aggregation: mean}", "sac: {learning_starts: 60}")
+    with pytest.raises(ValueError, match=r"the arms on Pendulum-v1 differ in learning_starts: serasac=50, sac=60\. "):
+        bench.run_grid(write(tmp_path, unmatched), str(tmp_path / "out"))
+    assert not (tmp_path / "out").exists()
+    # Declared as what the grid studies, the same arms are accepted; a name that is no shared setting is refused
+    specs = bench.load_grid(write(tmp_path, unmatched + "studies: [learning_starts]\n"))
+    assert {spec.hyperparams["learning_starts"] for spec in specs} == {50, 60}
+    with pytest.raises(ValueError, match=r"studies names \['critic_lr_max'\], not shared settings; allowed: "):
+        bench.load_grid(write(tmp_path, unmatched + "studies: [critic_lr_max]\n"))
+
+
 @pytest.mark.parametrize("path", sorted(GRIDS.glob("*.yml")), ids=lambda path: path.name)
 def test_shipped_grids_are_valid(path):
     specs = bench.load_grid(path)

@@ -1,15 +1,17 @@
-"""The paper's mechanism claims on run records: per-run measures and verdicts by hand."""
+"""The paper's claims on run records: per-run measures, tests, the Holm family and verdicts by hand."""
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
+from scipy import stats
 
 from sb3_sera.experiments import claims
 from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
-from sb3_sera.experiments.report import load_runs
+from sb3_sera.experiments.report import group_runs, load_runs
 
 
 def _claim_run(tmp_path: Path, variant: str, seed: int, mc_corr: float, finals: list[float]):
@@ -36,38 +38,110 @@ def _claim_run(tmp_path: Path, variant: str, seed: int, mc_corr: float, finals: 
     (folder / "result.json").write_text(json.dumps({"wall_time_s": 1.0}))
 
 
-def test_claims_by_hand(tmp_path):
-    for seed, corr in enumerate([0.2, 0.3, 0.4]):
-        _claim_run(tmp_path, "serasac", seed, corr, [0.0, 10.0, 20.0])
-    for seed, corr in enumerate([0.6, 0.7, 0.8]):
-        _claim_run(tmp_path, "sera_nolr", seed, corr, [0.0, 10.0, 30.0])
+def _decided(tmp_path, claims_list=None):
     runs, _ = load_runs([tmp_path])
-    by_variant = {v: [r for r in runs if r.variant == v] for v in ("serasac", "sera_nolr")}
-    run = by_variant["serasac"][0]
+    groups = group_runs(runs)
+    return runs, groups, claims.evaluate(claims_list if claims_list is not None else claims.default_claims(groups), groups)
+
+
+def test_claims_by_hand(tmp_path):
+    for seed, corr in enumerate([0.2, 0.3, 0.4, 0.3]):
+        _claim_run(tmp_path, "serasac", seed, corr, [0.0, 10.0, 20.0])
+    for seed, corr in enumerate([0.6, 0.7, 0.8, 0.7]):
+        _claim_run(tmp_path, "sera_nolr", seed, corr, [0.0, 10.0, 30.0])
+    runs, _, decided = _decided(tmp_path)
+    run = next(run for run in runs if run.variant == "serasac")
     assert claims.relative_bias(run) == pytest.approx(0.2)
-    # Second half (steps >= 150): variances 4 and 9 over mean squares 4 + 2^2 and 9 + 6^2 -> (0.5 + 0.2) / 2 = 0.35
+    # After learning_starts (steps 200, 300) the biases are 3 and -1: magnitude (3 + 1) / 2, signed (3 - 1) / 2
+    assert claims.abs_bias(run) == pytest.approx(2.0) and claims.signed_bias(run) == pytest.approx(1.0)
+    # Second half (steps >= 150): variances 4 and 9 over mean squares 4 + 2^2 and 9 + 6^2 -> (0.5 + 0.2) / 2 = 0.35;
+    # the raw variances' mean is 6.5
     assert claims.target_relative_variance(run) == pytest.approx(0.35)
-    lines = claims.claims_table(by_variant, reps=500)
-    mc_row = next(line for line in lines if "mc_error_corr" in line)
-    # SERA 0.3 against 0.7: -0.4; every resample of SERA lies in [0.2, 0.4] and of NoLR in [0.6, 0.8]
-    assert "| -0.4 [" in mc_row and mc_row.endswith("| supported |")
-    low, high = (float(x) for x in mc_row.split("| -0.4 [")[1].split("]")[0].split(", "))
-    assert -0.6 <= low <= -0.4 <= high <= -0.2
+    assert claims.target_variance(run) == pytest.approx(6.5)
+    # The final return is the mean of the last three evaluations: (0 + 10 + 20) / 3
+    assert claims.final_return(run) == pytest.approx(10.0)
+    by_id = {result.claim.id: result for result in decided}
+    mc = by_id["mc_error_corr-sera_nolr"]
+    # SERA 0.3 against 0.7: -0.4 with Welch's interval (variances 2/300 a side, df 6); the sides do not overlap, so
+    # only the observed split and its mirror are as far: p = 2 / C(8, 4) = 2 / 70 < 0.05 on the claimed side
+    half = stats.t.ppf(0.975, 6) * np.sqrt(2 * (0.02 / 3) / 4)
+    assert mc.difference == pytest.approx(-0.4) and (mc.low, mc.high) == pytest.approx((-0.4 - half, -0.4 + half))
+    assert mc.p_value == pytest.approx(2 / 70) and mc.verdict == "supported" and mc.adjusted_p is None
     # AUC: SERA (0, 10, 20) -> 10, NoLR (0, 10, 30) -> 12.5: SERA lower, claimed higher
-    auc_row = next(line for line in lines if "normalized AUC" in line)
-    assert "| -2.5 [-2.5, -2.5] | not supported |" in auc_row
-    # Fewer than MIN_RUNS a side: no interval, no verdict
-    few = claims.claims_table({k: v[:2] for k, v in by_variant.items()}, reps=500)
-    assert all("too few runs" in line for line in few if line.startswith("| Fig."))
+    auc = by_id["auc-sera_nolr"]
+    assert (auc.difference, auc.low, auc.high) == (-2.5, -2.5, -2.5) and auc.verdict == "contradicted"
+    lines = claims.claims_section(decided)
+    assert lines[0].startswith("Exploratory claims") and any("| contradicted |" in line for line in lines)
+    # Three runs a side: the smallest permutation p is 2/20, never below 0.05
+    for folder in tmp_path.glob("*/HalfCheetah-v5_4"):
+        shutil.rmtree(folder)
+    tested = [r for r in _decided(tmp_path)[2] if r.p_value is not None]
+    assert len(tested) >= 5 and {r.verdict for r in tested} == {"inconclusive"}
+    # Fewer than MIN_RUNS a side: no test, no verdict
+    for folder in tmp_path.glob("*/HalfCheetah-v5_3"):
+        shutil.rmtree(folder)
+    assert all(r.verdict.startswith("too few runs") and r.p_value is None for r in _decided(tmp_path)[2])
 
 
-def test_verdicts():
-    assert claims.verdict(-0.3, -0.1, lower=True) == "supported"
-    assert claims.verdict(0.1, 0.3, lower=True) == "not supported"
-    assert claims.verdict(-0.1, 0.3, lower=True) == "inconclusive at this n"
-    assert claims.verdict(0.1, 0.3, lower=False) == "supported"
-    point, low, high = claims.mean_difference_interval(np.array([1.0, 1.0]), np.array([0.0, 0.0]), reps=100)
-    assert (point, low, high) == (1.0, 1.0, 1.0)
+def test_declared_claims_are_one_holm_family_and_need_matched_settings(tmp_path):
+    for seed in range(4):
+        _claim_run(tmp_path, "serasac", seed, 0.2 + seed / 10, [0.0, 10.0, 20.0 + seed])
+        _claim_run(tmp_path, "sera_nolr", seed, 0.6 + seed / 10, [0.0, 10.0, 30.0 + seed])
+    declared = [
+        claims.Claim("corr", "HalfCheetah-v5", 300, "mc_error_corr", "serasac", "sera_nolr", "lower", primary=True),
+        claims.Claim("auc", "HalfCheetah-v5", 300, "auc", "serasac", "sera_nolr", "higher", primary=True),
+        claims.Claim("later", "Ant-v5", 300, "auc", "serasac", "sac", "higher", primary=True),
+    ]
+    _, _, decided = _decided(tmp_path, declared)
+    corr, auc, later = decided
+    # Holm over the family of three, the untested claim at p = 1: 2/70 and 2/70 times 3 and 2 -> 3 * 2/70 both
+    assert corr.p_value == pytest.approx(2 / 70) and corr.adjusted_p == pytest.approx(6 / 70)
+    assert corr.verdict == auc.verdict == "inconclusive"
+    assert later.verdict == "waiting for runs" and "no runs of serasac or sac" in later.note
+    lines = claims.claims_section(decided, n_primary=3)
+    assert lines[0].startswith("Primary claims") and "family of 3" in lines[-1]
+    # A baseline trained with another learning_starts is no comparison: the claim says which setting differs
+    for folder in (tmp_path / "sera_nolr").iterdir():
+        config = folder / "HalfCheetah-v5" / "config.yml"
+        config.write_text(yaml.safe_dump({"n_timesteps": 300, "learning_starts": 50}))
+    corr = _decided(tmp_path, declared[:1])[2][0]
+    assert corr.verdict == "waiting for runs" and corr.p_value is None
+    assert corr.note == "unmatched: learning_starts: serasac=100, sera_nolr=50"
+
+
+def test_the_ledger_declares_its_claims():
+    declared = claims.load_claims(Path(__file__).parents[2] / "results" / "claims.yml")
+    assert sum(claim.primary for claim in declared) == 6
+    assert {claim.task for claim in declared if claim.primary} == {"sb3_sera/HalfCheetah-6x1-v0"}
+    assert all(claims.MEASURES[claim.measure].paper_units for claim in declared if claim.primary)
+
+
+@pytest.mark.parametrize(
+    ("entry", "message"),
+    [
+        (
+            {"id": "a", "task": "T", "n_timesteps": 1, "measure": "speed", "arm": "x", "baseline": "y", "direction": "lower"},
+            "unknown measure 'speed'; measures: ",
+        ),
+        (
+            {"id": "a", "task": "T", "n_timesteps": 1, "measure": "auc", "arm": "x", "baseline": "y", "direction": "up"},
+            "direction 'up' is not one of",
+        ),
+        (
+            {"id": "a", "task": "T", "measure": "auc", "arm": "x", "baseline": "y", "direction": "higher", "primry": True},
+            r"unknown field\(s\) \['primry'\], missing \['n_timesteps'\]",
+        ),
+    ],
+)
+def test_claims_files_are_checked(tmp_path, entry, message):
+    path = tmp_path / "claims.yml"
+    path.write_text(yaml.safe_dump({"claims": [entry]}))
+    with pytest.raises(ValueError, match=message):
+        claims.load_claims(path)
+    valid = {"id": "a", "task": "T", "n_timesteps": 1, "measure": "auc", "arm": "x", "baseline": "y", "direction": "higher"}
+    path.write_text(yaml.safe_dump({"claims": [valid, valid]}))
+    with pytest.raises(ValueError, match="claim 'a': the id is declared twice"):
+        claims.load_claims(path)
 
 
 def test_disagreement_measures_by_hand(tmp_path):

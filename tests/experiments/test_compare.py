@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
-from sb3_sera.experiments import backends, compare, engine, specs
+from sb3_sera.experiments import backends, compare, engine, registry, specs
 from sb3_sera.experiments.cli import main
 
 TINY = ["--seeds", "0", "-n", "240", "--eval-freq", "120", "--eval-episodes", "1", "--reps", "200"]
@@ -150,6 +150,24 @@ def test_hyperparameters_come_from_the_zoo_files():
     )
     assert sac.hyperparams == {"policy": "MlpPolicy", "learning_rate": 1e-3, "batch_size": 64}
     assert "rl_zoo3" in sac.hyperparams_source
+
+
+def test_stock_sac_on_a_paper_task_shares_serasacs_settings(tmp_path, capsys):
+    # rl-zoo3 has no HalfCheetah-v5 entry for SAC: the package's sac.yml gives the paper's common settings, so the
+    # arms match; on a task it does not name, rl-zoo3's entry applies
+    shared = {}
+    for algo in ("serasac", "sac"):
+        spec = specs.make_spec(variant=algo, algo=algo, env_id="HalfCheetah-v5", seed=0, n_timesteps=20000)
+        shared[algo] = registry.shared_settings(algo, spec.hyperparams)
+    assert shared["sac"] == shared["serasac"] and shared["sac"]["learning_starts"] == 10000
+    assert registry.default_hyperparams("sac", "HalfCheetah-v5")[1] == "hyperparams/sac.yml:HalfCheetah-v5"
+    assert registry.default_hyperparams("sac", "Hopper-v5")[1] == "rl_zoo3/hyperparams/sac.yml:default"
+    # A comparison whose arms differ in a shared setting is refused naming it and each arm's value
+    with pytest.raises(SystemExit):
+        main(["compare", *TINY, "--out", str(tmp_path / "runs"), "-params", "sac:batch_size:64"])
+    error = capsys.readouterr().err
+    assert "differ in batch_size: serasac=256, sac=64" in error and "compare --studies batch_size" in error
+    assert not (tmp_path / "runs").exists()
 
 
 def test_default_threads_follow_omp_num_threads(monkeypatch):

@@ -93,30 +93,32 @@ def test_runs_of_other_budgets_or_settings_are_never_averaged(tmp_path):
     assert "serasac: 2 sets of hyperparameters, differing in batch_size: listed apart, never averaged together." in report
     assert "serasac also has runs of 600 steps on this task" in report
     assert "serasac also has runs of 3,000 steps on this task" in report
-    # batch 256: finals 5000, 6000 -> mean 5500, sample std 707.1 (by hand: sqrt(((-500)^2 + 500^2) / 1));
-    # AUC (0, 3000, 5000) -> 2750 and (0, 3000, 6000) -> 3000; bias 4 and 2 -> 3; IQM of two values is their mean
+    # batch 256: final returns (the mean of the last three evaluations) 8000 / 3 and 9000 / 3 -> mean 2833.3, sample
+    # std 235.7 (by hand: sqrt(2 * (500 / 3)^2 / 1)); AUC (0, 3000, 5000) -> 2750 and (0, 3000, 6000) -> 3000; bias 4
+    # and 2 -> 3; IQM of two values is their mean
     row = table_row(report, "serasac (batch_size=256)")
     assert row[1] == "2"
-    assert row[2] == "5500.0† (n < 3: no interval)"
-    assert row[3] == "5500.0 ± 707.1"
+    assert row[2] == "2833.3† (n < 3: no interval)"
+    assert row[3] == "2833.3 ± 235.7"
     assert row[4] == "5520 ± 711"
     assert row[5] == "2875.0† (n < 3: no interval)"
     assert row[9] == "3.0"
-    assert table_row(report, "serasac (batch_size=64)")[3] == "200.0 ± n/a"
+    assert table_row(report, "serasac (batch_size=64)")[3] == "100.0 ± n/a"
     # Two serasac groups at 3,000 steps: rows are compared against the one of most runs, and with two runs a side
     # neither P(improvement) nor a percentage is printed
     masac = table_row(report, "masac")
     assert masac[6] == "n < 3" and masac[8] == "n < 3" and float(masac[7]) > 0
     assert "serasac has 2 settings here: every row is compared against serasac (batch_size=256)." in report
-    assert table_row(report, "serasac")[2] == "20.0† (n < 3: no interval)"  # the 600-step run alone
+    assert table_row(report, "serasac")[2] == "10.0† (n < 3: no interval)"  # the 600-step run alone: (0 + 10 + 20) / 3
 
 
 def test_reference_comparisons_by_hand_and_by_rliable(tmp_path):
     root = tmp_path / "runs"
+    # Three evaluations at the final return each: a run's final return is the mean of its last three
     for run_id, final in enumerate([5000.0, 6000.0, 5500.0], start=1):
-        fake_run(root, "serasac", run_id, run_id, [0.0, 3000.0, final])
+        fake_run(root, "serasac", run_id, run_id, [final] * 3)
     for run_id, final in enumerate([4000.0, 4400.0, 5800.0], start=1):
-        fake_run(root, "masac", run_id, run_id, [0.0, 2000.0, final])
+        fake_run(root, "masac", run_id, run_id, [final] * 3)
     report = report_roots([root], tmp_path / "report", reps=REPS).read_text()
     serasac, masac = np.array([5000.0, 6000.0, 5500.0]), np.array([4000.0, 4400.0, 5800.0])
     row = table_row(report, "masac")
@@ -229,8 +231,8 @@ def test_report_refuses_to_overwrite_and_needs_runs(tmp_path, capsys):
 def test_normalized_scores_use_fixed_references(tmp_path):
     # HalfCheetah 6x1: 0 at the paper's lowest column (MAPPO 3623), 1 at SERA (5520); HalfCheetah-v5: ACE 3923, SERA 6056
     for seed, (multi, single) in enumerate([(3623.0, 3923.0), (5520.0, 6056.0), (4571.5, 4989.5)]):
-        fake_run(tmp_path / "runs", "serasac", seed + 1, seed, [0.0, 1.0, multi])
-        fake_run(tmp_path / "runs", "serasac", seed + 1, seed, [0.0, 1.0, single], env_id="HalfCheetah-v5")
+        fake_run(tmp_path / "runs", "serasac", seed + 1, seed, [multi] * 3)
+        fake_run(tmp_path / "runs", "serasac", seed + 1, seed, [single] * 3, env_id="HalfCheetah-v5")
     report = report_roots([tmp_path / "runs"], tmp_path / "report", reps=REPS).read_text()
     assert "| serasac | 3 x 2 | 0.50 [" in report
     # Adding a variant changes no score

@@ -5,11 +5,14 @@ import pytest
 from scipy import stats
 
 from sb3_sera.experiments.stats import (
+    holm_adjusted,
     improvement_percent,
     iqm,
     min_max_normalized,
     normalized_auc,
+    permutation_p_value,
     sample_std,
+    welch_interval,
     welch_p_value,
 )
 
@@ -27,7 +30,7 @@ def test_welch_p_value_matches_scipy_and_a_hand_computation():
     expected = stats.ttest_ind(a, b, equal_var=False).pvalue
     assert welch_p_value(a, b) == pytest.approx(expected)
     # By hand: means 2.5 and 6, variances 5/3 and 10, t = -3.5 / sqrt(5/12 + 2) = -2.2514,
-    # Welch-Satterthwaite df = (5/12 + 2)^2 / ((5/12)^2 / 3 + 2^2 / 4) = 5.47
+    # Welch-Satterthwaite df = (5/12 + 2)^2 / ((5/12)^2 / 3 + 2^2 / 4) = 5.52
     t, df = -3.5 / (5 / 12 + 2) ** 0.5, (5 / 12 + 2) ** 2 / ((5 / 12) ** 2 / 3 + 1)
     assert welch_p_value(a, b) == pytest.approx(2 * stats.t.sf(abs(t), df))
     assert welch_p_value([1.0], b) is None
@@ -97,3 +100,63 @@ def test_vectorized_bootstraps_agree_with_rliable():
     expected_profiles, expected_bands = _rliable(rly.create_performance_profile, {"x": x}, thresholds, reps=reps)
     np.testing.assert_allclose(profiles["x"], expected_profiles["x"])
     np.testing.assert_allclose(bands["x"], expected_bands["x"], atol=0.07)
+
+
+def test_welch_interval_matches_scipy_and_a_hand_computation():
+    a, b = [1.0, 2.0, 3.0, 4.0], [2.0, 4.0, 6.0, 8.0, 10.0]
+    difference, low, high = welch_interval(a, b)
+    expected = stats.ttest_ind(a, b, equal_var=False).confidence_interval(0.95)
+    assert (low, high) == pytest.approx((expected.low, expected.high))
+    # By hand: -3.5 +- t(0.975, df 5.52) * sqrt(5/12 + 2) = 2.4993 * 1.5546
+    half = stats.t.ppf(0.975, (5 / 12 + 2) ** 2 / ((5 / 12) ** 2 / 3 + 2**2 / 4)) * np.sqrt(5 / 12 + 2)
+    assert difference == -3.5 and high - difference == pytest.approx(half) and half == pytest.approx(3.885, abs=1e-3)
+    assert welch_interval([1.0, 1.0], [0.0, 0.0]) == (1.0, 1.0, 1.0)
+    with pytest.raises(ValueError, match="two values a side"):
+        welch_interval([1.0], [1.0, 2.0])
+
+
+def test_permutation_p_value_is_exact_and_matches_scipy():
+    a, b = [1.0, 2.0, 3.0, 4.0, 5.5], [3.0, 4.0, 5.0, 6.0, 7.0]
+    expected = stats.permutation_test(
+        (np.array(a), np.array(b)), lambda x, y: x.mean() - y.mean(), permutation_type="independent", n_resamples=np.inf
+    ).pvalue
+    assert permutation_p_value(a, b) == pytest.approx(expected)
+    # Wholly separated sides of 5: only the observed split and its mirror are as far: 2 of C(10, 5) = 252
+    assert permutation_p_value([10.0, 11, 12, 13, 14], [0.0, 1, 2, 3, 4]) == pytest.approx(2 / 252)
+    # By hand, 2 against 2 with ties: splits of {0, 0, 1, 3} into pairs; |difference| >= 2 for ({0, 0}, {1, 3})
+    # and its mirror, 2 of C(4, 2) = 6
+    assert permutation_p_value([0.0, 0.0], [1.0, 3.0]) == pytest.approx(2 / 6)
+    # Above the exact limit: seeded random splits with the observed one counted in, near the exact value
+    many = permutation_p_value(a, b, permutations=100)
+    assert many == permutation_p_value(a, b, permutations=100) and abs(many - expected) < 0.15
+    assert 0 < many <= 1
+
+
+def test_holm_by_hand():
+    # Sorted 0.005, 0.01, 0.03, 0.04 times 4, 3, 2, 1: 0.02, 0.03, 0.06, 0.04 -> monotone 0.02, 0.03, 0.06, 0.06
+    assert holm_adjusted([0.01, 0.04, 0.03, 0.005]) == pytest.approx([0.03, 0.06, 0.06, 0.02])
+    assert holm_adjusted([0.5, 0.9]) == pytest.approx([1.0, 1.0])
+    assert holm_adjusted([]) == []
+
+
+@pytest.mark.parametrize("shape", ["normal", "skewed"])
+@pytest.mark.parametrize("spread", [1.0, 2.5])
+def test_welch_interval_covers_at_five_against_five(shape, spread):
+    """
+    Coverage of the 95% Welch interval of a difference of means at 5 runs a side, 4,000 simulated comparisons:
+    normal data, and gamma data of shape 4 (skewness 1), with equal standard deviations or one side's 2.5 times the
+    other's. Measured here: 95.4% and 95.0% (normal), 96.2% and 94.4% (skewed); a percentile bootstrap of the same difference
+    covers 86-88%. Heavier skew lowers it (exponential data, 2.5x: 91.6% in 20,000 comparisons).
+    """
+    rng = np.random.default_rng(0)
+    draws = 4000
+    if shape == "normal":
+        x, y, truth = rng.normal(0, spread, (draws, 5)), rng.normal(0, 1, (draws, 5)), 0.0
+    else:
+        x, y = spread * rng.gamma(4, 1, (draws, 5)), rng.gamma(4, 1, (draws, 5))
+        truth = (spread - 1) * 4.0
+    covered = 0
+    for sample, baseline in zip(x, y, strict=True):
+        _, low, high = welch_interval(sample, baseline)
+        covered += low <= truth <= high
+    assert covered / draws >= 0.93

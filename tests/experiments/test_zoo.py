@@ -77,6 +77,10 @@ def test_zoo_tables_and_arguments():
     assert zoo_argv("train", ["--algo", "masac"])[-2:] == ["--conf-file", str(HYPERPARAMS_DIR / "masac.yml")]
     assert zoo_argv("train", ["--algo", "masac", "-conf", "mine.yml"]) == ["--algo", "masac", "-conf", "mine.yml"]
     assert "-optimize" in zoo_argv("optimize", ["--algo", "serasac"])
+    # Stock SAC reads the package's sac.yml on the tasks it names, rl-zoo3's own file on the others
+    sac = ["--algo", "sac", "--env"]
+    assert zoo_argv("train", [*sac, "HalfCheetah-v5"])[-1] == str(HYPERPARAMS_DIR / "sac.yml")
+    assert zoo_argv("train", [*sac, "Pendulum-v1"]) == [*sac, "Pendulum-v1"]
     with pytest.raises(ValueError, match="Unknown zoo command 'fly'"):
         zoo_argv("fly", [])
 

@@ -13,7 +13,7 @@ import numpy as np
 
 from sb3_sera.experiments import stats
 from sb3_sera.experiments.records import RunResult
-from sb3_sera.experiments.registry import algorithm_classes
+from sb3_sera.experiments.registry import algorithm_default
 
 #: Variants in the order tables list them and colours are given (others follow, alphabetically)
 VARIANT_ORDER = (
@@ -106,14 +106,3 @@ def settings_text(hyperparams: dict[str, Any], keys: Sequence[str], algo: str = 
         f"{key}={hyperparams[key]}" if key in hyperparams else f"{key}={algorithm_default(algo, key)} (default)"
         for key in keys
     )
-
-
-def algorithm_default(algo: str, key: str) -> Any:
-    """The default of ``key`` in the constructor of ``algo`` (rl-zoo3's name), or "unknown"."""
-    import inspect
-
-    model_class = algorithm_classes().get(algo)
-    if model_class is None:
-        return "unknown"
-    parameter = inspect.signature(model_class).parameters.get(key)
-    return "unknown" if parameter is None or parameter.default is inspect.Parameter.empty else parameter.default

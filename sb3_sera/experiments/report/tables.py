@@ -10,6 +10,9 @@ from collections.abc import Sequence
 import numpy as np
 
 from sb3_sera.experiments import stats
+from sb3_sera.experiments.claims import group_settings
+from sb3_sera.experiments.records import FINAL_EVALUATIONS
+from sb3_sera.experiments.registry import unmatched_settings, unmatched_text
 from sb3_sera.experiments.report.groups import RunGroup, differing_keys
 from sb3_sera.experiments.report.paper import PAPER_NAMES, PAPER_RESULTS
 
@@ -63,7 +66,14 @@ def section_table(groups: Sequence[RunGroup], reps: int) -> list[str]:
         paper_value = paper.get(PAPER_NAMES.get(group.variant, ""))
         paper_cell = "" if paper_value is None else f"{paper_value[0]:g} ± {paper_value[1]:g}"
         improvement_cell = p_cell = poi_cell = ""
-        if reference is not None and group is not reference:
+        unmatched = (
+            unmatched_settings({reference.label: group_settings(reference), group.label: group_settings(group)})
+            if reference is not None and group is not reference
+            else {}
+        )
+        if unmatched:
+            poi_cell = p_cell = improvement_cell = f"unmatched ({', '.join(unmatched)})"
+        elif reference is not None and group is not reference:
             p_value = stats.welch_p_value(reference.finals, finals)
             p_cell = "" if p_value is None else f"{p_value:.3f}"
             if min(len(reference.finals), len(finals)) < MIN_RUNS:
@@ -85,19 +95,46 @@ def section_table(groups: Sequence[RunGroup], reps: int) -> list[str]:
         )
     lines += [
         "",
-        f"n: runs (seeds) per row, {budget:,} steps each. IQM: interquartile mean over the runs (†: n <= 3, where it "
+        f"n: runs (seeds) per row, {budget:,} steps each. Final return: the mean of a run's last {FINAL_EVALUATIONS} "
+        f"evaluations' mean returns. IQM: interquartile mean over the runs (†: n <= 3, where it "
         f"trims nothing and is the mean); [a, b]: its {INTERVAL}, {reps} resamples, printed from {MIN_RUNS} runs on. "
         f"mean ± std: sample standard deviation (ddof 1). Normalized AUC: the area under the run's learning curve "
         f"divided by its length in steps (its average evaluation return). P({REFERENCE} > variant): probability that a "
         f"run of {REFERENCE} ends higher than a run of the variant, with its interval, and {REFERENCE}'s improvement in "
         f"percent of the variant's mean, both from {MIN_RUNS} runs a side on. Welch p: two-sided Welch's t-test on the "
-        "final returns. Initial-state bias: mean V(s0) minus the mean discounted return at the last evaluation.",
+        "final returns. Initial-state bias: mean V(s0) minus the mean discounted return at the last evaluation. "
+        f"unmatched: the group trained with other shared settings than {REFERENCE}'s (below), so no comparison is "
+        "printed.",
+        "",
+        *settings_lines(groups),
     ]
     if reference_note:
         lines += ["", reference_note]
     others = [name for name in paper if name not in {PAPER_NAMES.get(group.variant) for group in groups}]
     if others:
         lines += ["", "Paper only: " + ", ".join(f"{name} {paper[name][0]:g} ± {paper[name][1]:g}" for name in others)]
+    return lines
+
+
+def settings_lines(groups: Sequence[RunGroup]) -> list[str]:
+    """
+    The shared settings every group of the section trains with, and per group any that differ from the reference
+    group's (such a row is no comparison of algorithms).
+    """
+    settings = {group.label: group_settings(group) for group in groups}
+    common_keys = [key for key in next(iter(settings.values())) if all(key in s for s in settings.values())]
+    common = {
+        key: value
+        for key, value in next(iter(settings.values())).items()
+        if key in common_keys and len({repr(s[key]) for s in settings.values()}) == 1
+    }
+    lines = ["Shared settings of every group: " + ", ".join(f"{key}={value}" for key, value in common.items()) + "."]
+    reference, _ = reference_group(groups)
+    if reference is not None:
+        for group in groups:
+            differing = unmatched_settings({reference.label: settings[reference.label], group.label: settings[group.label]})
+            if group is not reference and differing:
+                lines.append(f"Not matched to {reference.label}: {group.label} differs in {unmatched_text(differing)}.")
     return lines
 
 

@@ -9,7 +9,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from sb3_sera.experiments import stats
-from sb3_sera.experiments.claims import claims_section
+from sb3_sera.experiments.claims import Claim, ClaimResult, bias_lines, claims_section, default_claims, evaluate
+from sb3_sera.experiments.identity import identity_lines
 from sb3_sera.experiments.records import RunResult, env_name
 from sb3_sera.experiments.report.aggregate import aggregate_section
 from sb3_sera.experiments.report.figures import (
@@ -32,6 +33,8 @@ def write_report(
     matrix_step: int | None = None,
     sources: Sequence[str] = (),
     log: Callable[[str], None] | None = None,
+    claims: Sequence[Claim] | None = None,
+    code_hashes: dict[str, dict[str, str]] | None = None,
 ) -> Path:
     """
     Write ``report.md`` and its figures into the folder ``out`` (see the module's docstring).
@@ -42,6 +45,10 @@ def write_report(
     :param matrix_step: the step whose correlation matrices are drawn (None: each run's last evaluation)
     :param sources: where the runs were read from, for the report's first line
     :param log: called with a line saying what the report is doing, section by section (None: silent)
+    :param claims: the declared claims to decide (a ledger's ``claims.yml``), the primary ones as one family; None:
+        each section's :func:`~sb3_sera.experiments.claims.default_claims`, all exploratory
+    :param code_hashes: a ledger's code hashes per commit (:mod:`~sb3_sera.experiments.identity`): each section says
+        whether its groups' runs from several commits train the same
     :return: the path of ``report.md``
     """
     if not runs:
@@ -56,17 +63,15 @@ def write_report(
     lines = ["# Results", ""]
     if sources:
         lines += [f"Runs read from: {', '.join(sources)}.", ""]
+    decided = evaluate(claims if claims is not None else default_claims(all_groups), all_groups)
+    n_primary = sum(result.claim.primary for result in decided)
+    if n_primary:
+        lines += ["## Primary claims", "", *claims_section([r for r in decided if r.claim.primary], n_primary), ""]
     for number, ((env_id, budget), groups) in enumerate(sections_by_key.items(), start=1):
         stem = f"{env_name(env_id)}_{budget}"
         if log is not None:
             log(f"report: section {number}/{len(sections_by_key)}, {env_id} at {budget:,} steps: table, claims, figures")
-        lines += [f"## {env_id}, {budget:,} steps", "", *section_table(groups, reps), ""]
-        claims = claims_section([(group.variant, group.runs) for group in groups], reps)
-        if claims:
-            lines += ["### The paper's mechanism claims", "", *claims, ""]
-        notes = section_notes(groups, all_groups)
-        if notes:
-            lines += ["Notes:", *notes, ""]
+        lines += section_text(groups, all_groups, section_claims(decided, env_id, budget), n_primary, code_hashes, reps)
         grid_notes = plot_curves(
             groups,
             attribute="returns",
@@ -102,11 +107,50 @@ def write_report(
         same_budget = [groups for (_, b), groups in sections_by_key.items() if b == budget]
         if len(same_budget) > 1:
             lines += aggregate_section(same_budget, folder=folder, colors=colors, reps=reps, budget=budget)
+    waiting = [r for r in decided if (r.claim.task, r.claim.n_timesteps) not in sections_by_key]
+    if waiting:
+        lines += [
+            "## Claims waiting for runs",
+            "",
+            *(f"- {r.claim.id} ({r.claim.task}, {r.claim.n_timesteps:,} steps): {r.note}" for r in waiting),
+            "",
+        ]
     if skipped:
         lines += ["## Left out", "", *(f"- {s.folder}: {s.reason}" for s in skipped), ""]
     report = folder / "report.md"
     report.write_text("\n".join(lines))
     return report
+
+
+def section_text(
+    groups: Sequence[RunGroup],
+    all_groups: Sequence[RunGroup],
+    decided: Sequence[ClaimResult],
+    n_primary: int,
+    code_hashes: dict[str, dict[str, str]] | None,
+    reps: int,
+) -> list[str]:
+    """One section's Markdown before its figures: the table, the claims, the bias table, code identity and notes."""
+    env_id, budget = groups[0].env_id, groups[0].n_timesteps
+    lines = [f"## {env_id}, {budget:,} steps", "", *section_table(groups, reps), ""]
+    claims_lines = claims_section(decided, n_primary)
+    if claims_lines:
+        lines += ["### The paper's claims", "", *claims_lines, ""]
+    bias_table = bias_lines(groups)
+    if bias_table:
+        lines += ["### Initial-state bias", "", *bias_table, ""]
+    identity = identity_lines(groups, code_hashes) if code_hashes is not None else []
+    if identity:
+        lines += ["Code identity of groups run at several commits:", "", *identity, ""]
+    notes = section_notes(groups, all_groups)
+    if notes:
+        lines += ["Notes:", *notes, ""]
+    return lines
+
+
+def section_claims(decided: Sequence[ClaimResult], env_id: str, budget: int) -> list[ClaimResult]:
+    """The decided claims about one task and budget."""
+    return [result for result in decided if (result.claim.task, result.claim.n_timesteps) == (env_id, budget)]
 
 
 def report_roots(
