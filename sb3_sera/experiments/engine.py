@@ -24,7 +24,7 @@ from sb3_sera.common.mujoco_log import route_mujoco_warnings
 from sb3_sera.ctde.env import STATE_KEY
 from sb3_sera.experiments.evaluation import InitialStateBiasCallback
 from sb3_sera.experiments.policy_kwargs import parse_policy_kwargs
-from sb3_sera.experiments.records import RESULT_FILE, RunResult, env_name, load_result, plain, records_dir
+from sb3_sera.experiments.records import RESULT_FILE, RunResult, env_name, load_result, plain, records_dir, write_atomic
 from sb3_sera.experiments.registry import RUN_KEYS, algorithm_classes
 from sb3_sera.experiments.specs import RunSpec
 
@@ -96,7 +96,7 @@ class ProgressFile(BaseCallback):
 
     def _on_step(self) -> bool:
         if self.n_calls % self.every == 0:
-            self.path.write_text(str(self.num_timesteps))
+            write_atomic(self.path, str(self.num_timesteps))
         return True
 
 
@@ -120,7 +120,7 @@ def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
         return load_result(folder)
     route_mujoco_warnings()
     # An interrupted run starts again here, maybe under newer code: its record names the code that runs now
-    (records_dir(folder, spec.env_id) / "args.yml").write_text(yaml.safe_dump(plain(spec.args()), sort_keys=True))
+    write_atomic(records_dir(folder, spec.env_id) / "args.yml", yaml.safe_dump(plain(spec.args()), sort_keys=True))
     if spec.num_threads is not None:
         th.set_num_threads(spec.num_threads)
     env_kwargs = spec.hyperparams.get("env_kwargs") or {}
@@ -145,5 +145,5 @@ def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
     eval_env.close()
     # Written last: its presence marks the run as finished. Threads and device as the worker saw them
     result = {"wall_time_s": wall_time, "torch_threads": th.get_num_threads(), "device": str(model.device)}
-    (folder / RESULT_FILE).write_text(json.dumps(result))
+    write_atomic(folder / RESULT_FILE, json.dumps(result))
     return load_result(folder)

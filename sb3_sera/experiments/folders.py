@@ -1,46 +1,88 @@
 """
 The output folder of ``compare`` and ``bench``: a run folder for each spec, and the lock that keeps a second command
-out of it. A run whose records match an earlier run's gets that run's folder (finished: read back, not run again;
-interrupted: run again there); any other run gets a new ``<env_name>_<id>`` with the next free id, its records
-written at once.
+out of it. A run whose records match an earlier run's gets that run's folder: a finished one is read back, not run
+again, only where the same code made it (the same digest of the package's source and the same package versions:
+``records.code_difference``; otherwise it is kept and the run trained again in a new folder); an interrupted one is
+run again there. A folder whose records
+are damaged is named with the file and the reason and left as it is. Any other run gets a new ``<env_name>_<id>``
+with the next free id, its records written at once (atomically). Every decision is announced per run.
 """
 
 import os
 import sys
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import yaml
 
-from sb3_sera.experiments.records import env_name, plain, read_record, records_dir, run_ids
+from sb3_sera.experiments.records import (
+    RESULT_FILE,
+    code_difference,
+    env_name,
+    load_result,
+    plain,
+    read_record,
+    records_dir,
+    run_ids,
+    write_atomic,
+)
 from sb3_sera.experiments.specs import RunSpec
 
 
-def assign_folders(specs: Sequence[RunSpec], out_dir: str | Path) -> list[Path]:
+def _notice(message: str) -> None:
+    print(message, file=sys.stderr)
+
+
+def assign_folders(
+    specs: Sequence[RunSpec], out_dir: str | Path, notice: Callable[[str], None] = _notice
+) -> list[Path]:
     """
-    A folder per spec: the folder of an earlier run with the same records (finished: read back; interrupted: run
-    again there), else a new ``<env_name>_<id>`` with the next free id, its records written at once.
+    A folder per spec (see the module's docstring): an earlier run's with the same records where its code is the
+    code that runs now (finished: read back) or it is unfinished (run again there), else a new ``<env_name>_<id>``.
+
+    :param notice: called with a line per reused, stale or damaged folder
     """
     folders: list[Path] = []
     taken: set[Path] = set()
+    damaged: set[Path] = set()
+    # The code that runs now (commit, tree state, package versions), read once
+    current = specs[0].args() if specs else {}
     for spec in specs:
         variant_dir = Path(out_dir) / spec.variant
         existing = run_ids(variant_dir, spec.env_id)
         match = None
         for _, folder in sorted(existing.items()):
-            args_file = records_dir(folder, spec.env_id) / "args.yml"
-            if folder not in taken and args_file.exists() and _same_run(folder, spec):
-                match = folder
-                break
+            if folder in taken or folder in damaged or not (records_dir(folder, spec.env_id) / "args.yml").exists():
+                continue
+            try:
+                same = _same_run(folder, spec)
+                finished = (folder / RESULT_FILE).exists()
+                if same and finished:
+                    load_result(folder)
+            except ValueError as error:
+                damaged.add(folder)
+                notice(f"{folder}: damaged ({error}): left as it is; its run is made again in a new folder")
+                continue
+            if not same:
+                continue
+            stale = code_difference(read_record(records_dir(folder, spec.env_id) / "args.yml"), current)
+            if finished and stale is not None:
+                taken.add(folder)
+                notice(f"{folder}: finished, but not by the code that runs now ({stale}): kept; trained again")
+                continue
+            notice(f"{folder}: " + ("finished by the same code: read back" if finished else "unfinished: run again there"))
+            match = folder
+            break
         if match is None:
             next_id = max([*existing, *(_id_of(f, spec.env_id) for f in taken if f.parent == variant_dir)], default=0) + 1
             match = variant_dir / f"{env_name(spec.env_id)}_{next_id}"
             records = records_dir(match, spec.env_id)
             records.mkdir(parents=True)
-            (records / "config.yml").write_text(yaml.safe_dump(plain(spec.config()), sort_keys=True))
-            (records / "args.yml").write_text(yaml.safe_dump(plain(spec.args()), sort_keys=True))
+            write_atomic(records / "config.yml", yaml.safe_dump(plain(spec.config()), sort_keys=True))
+            write_atomic(records / "args.yml", yaml.safe_dump(plain(spec.args()), sort_keys=True))
         taken.add(match)
         folders.append(match)
     return folders
@@ -51,10 +93,19 @@ def _id_of(folder: Path, env_id: str) -> int:
 
 
 def _same_run(folder: Path, spec: RunSpec) -> bool:
+    """Whether the run in ``folder`` is ``spec``'s; ``ValueError`` naming the record that cannot be read."""
     records = records_dir(folder, spec.env_id)
-    args, config = read_record(records / "args.yml"), read_record(records / "config.yml")
-    recorded = {key: args.get(key) for key in spec.run_args()}
-    return {**recorded, "config": config} == spec.identity()
+    recorded: list[dict[str, Any]] = []
+    for name in ("args.yml", "config.yml"):
+        try:
+            record = read_record(records / name)
+        except (OSError, yaml.YAMLError) as error:
+            raise ValueError(f"{records.name}/{name} is unreadable: {' '.join(str(error).split())[:200]}") from None
+        if not isinstance(record, dict) or not record:
+            raise ValueError(f"{records.name}/{name} is {'empty' if not record else 'not a mapping'}")
+        recorded.append(record)
+    args, config = recorded
+    return {**{key: args.get(key) for key in spec.run_args()}, "config": config} == spec.identity()
 
 
 #: The lock file of an output folder, held by the command that runs into it

@@ -2,8 +2,8 @@
 A run on disk, in rl-zoo3's layout so that the zoo's own runs read the same way. A run lives in
 ``<out>/<variant>/<env_name>_<id>/`` (ids from 1, as the zoo numbers them) and holds, as the zoo writes them,
 ``<env_name>/config.yml`` (the resolved hyperparameters) and ``<env_name>/args.yml`` (algorithm, variant, env id,
-seed, budget, evaluation settings, threads, device, where the hyperparameters came from, the package versions, and
-the git commit of the code that ran with whether its tree was clean),
+seed, budget, evaluation settings, threads, device, where the hyperparameters came from, the package versions, the
+git commit of the code that ran with whether its tree was clean, and a digest of the package's source),
 then ``evaluations.npz`` and the callback's records, ``0.monitor.csv``, TensorBoard events under
 ``<variant>_seed<seed>_1/``, the final model ``<env_name>.zip`` and, written last, ``result.json`` (wall time, and
 the torch threads and device the run had).
@@ -12,8 +12,10 @@ This module names those folders and files, says which code and package versions 
 records back (ours or rl-zoo3's) as a :class:`RunResult`.
 """
 
+import hashlib
 import json
 import math
+import os
 import platform
 import subprocess
 import zipfile
@@ -85,6 +87,62 @@ def _ordered_dict(loader: yaml.SafeLoader, node: yaml.Node) -> dict[str, Any]:
 
 
 _RecordLoader.add_constructor("tag:yaml.org,2002:python/object/apply:collections.OrderedDict", _ordered_dict)
+
+
+def write_atomic(path: Path, text: str) -> None:
+    """
+    Write ``text`` to ``path`` whole or not at all: into a temporary file beside it, flushed to disk, then renamed over
+    it, so a kill or a full disk never leaves a half-written record.
+    """
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with temporary.open("w") as handle:
+            handle.write(text)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)
+
+
+def code_digest() -> str:
+    """
+    SHA-256 (16 hex digits) of the package's source and hyperparameter files as they are now (names and bytes): the
+    same digest means the same code, in a checkout with changes as in an installed wheel.
+    """
+    from sb3_sera.experiments.zoo import HYPERPARAMS_DIR
+
+    package = Path(__file__).resolve().parents[1]
+    digest = hashlib.sha256()
+    files = [(f"sb3_sera/{p.relative_to(package).as_posix()}", p) for p in package.rglob("*.py")]
+    files += [(f"hyperparams/{p.name}", p) for p in Path(HYPERPARAMS_DIR).glob("*.yml")]
+    for name, path in sorted(files):
+        digest.update(name.encode() + b"\0" + path.read_bytes() + b"\0")
+    return digest.hexdigest()[:16]
+
+
+def code_difference(recorded: dict[str, Any], current: dict[str, Any]) -> str | None:
+    """
+    Why a run recorded in ``recorded`` (an ``args.yml``) was not made by the code ``current`` describes (as
+    :meth:`RunSpec.args` gives it), or None where it was: the same package versions and the same code digest
+    (:func:`code_digest`); for a record without a digest, the same commit from clean trees.
+    """
+    versions, now_versions = recorded.get("versions") or {}, current.get("versions") or {}
+    changed = sorted(k for k in set(versions) | set(now_versions) if versions.get(k) != now_versions.get(k))
+    if changed:
+        return "package versions differ: " + ", ".join(
+            f"{k} {versions.get(k, 'none')} then, {now_versions.get(k, 'none')} now" for k in changed
+        )
+    if recorded.get("code_digest") is not None:
+        if recorded["code_digest"] != current.get("code_digest"):
+            return f"its code digest is {recorded['code_digest']}, the code's now is {current.get('code_digest')}"
+        return None
+    commit, now = recorded.get("git_commit"), current.get("git_commit")
+    if recorded.get("git_clean") is False or commit is None:
+        return "its record names no code digest and no clean commit"
+    if commit != now or current.get("git_clean") is False:
+        return f"its record names commit {str(commit)[:10]} and no code digest; the code now is {str(now)[:10]}"
+    return None
 
 
 def read_record(path: Path) -> dict[str, Any]:

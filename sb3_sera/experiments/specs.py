@@ -10,7 +10,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from sb3_sera.experiments.records import package_versions, plain, source_revision
+from sb3_sera.experiments.records import code_digest, package_versions, plain, source_revision
 from sb3_sera.experiments.registry import (
     SHARED_SETTINGS,
     check_hyperparams,
@@ -61,6 +61,7 @@ class RunSpec:
             "hyperparams_source": self.hyperparams_source,
             "versions": package_versions(),
             **source_revision(),
+            "code_digest": code_digest(),
             "machine": platform.machine(),
         }
 

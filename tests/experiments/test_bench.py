@@ -106,6 +106,22 @@ def test_grid_runs_and_resumes(tmp_path, capsys):
     assert redone.exists()
     assert not (out / "ensemble_mean" / "Pendulum-v1_2").exists()
     assert (out / "reports" / "grid_2" / "report.md").exists()
+    notices = capsys.readouterr().err
+    assert f"{kept.parent}: finished by the same code: read back" in notices
+    assert f"{redone.parent}: unfinished: run again there" in notices
+    # A finished run made by other code is kept and trained again in a new folder; a half-written record is named
+    # with its file and left as it is, its run made again in a new folder
+    args_file = kept.parent / "Pendulum-v1" / "args.yml"
+    args_file.write_text(args_file.read_text().replace("code_digest: ", "code_digest: 0"))
+    damaged = out / "ensemble_mean" / "Pendulum-v1_1" / "Pendulum-v1" / "config.yml"
+    damaged.write_text(damaged.read_text()[:25] + "\n  - [unclosed")
+    main(["bench", str(path), "--out", str(out), "--n-jobs", "2", "--reps", "200"])
+    notices = capsys.readouterr().err
+    assert f"{kept.parent}: finished, but not by the code that runs now (its code digest is 0" in notices
+    assert f"{redone.parent}: damaged (Pendulum-v1/config.yml is unreadable: " in notices
+    assert kept.stat().st_mtime_ns == stamp and damaged.exists()
+    assert (out / "serasac" / "Pendulum-v1_2" / "result.json").exists()
+    assert (out / "ensemble_mean" / "Pendulum-v1_2" / "result.json").exists()
 
 
 def test_grid_on_a_local_ray_instance(tmp_path):
