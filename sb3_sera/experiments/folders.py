@@ -36,9 +36,7 @@ def _notice(message: str) -> None:
     print(message, file=sys.stderr)
 
 
-def assign_folders(
-    specs: Sequence[RunSpec], out_dir: str | Path, notice: Callable[[str], None] = _notice
-) -> list[Path]:
+def assign_folders(specs: Sequence[RunSpec], out_dir: str | Path, notice: Callable[[str], None] = _notice) -> list[Path]:
     """
     A folder per spec (see the module's docstring): an earlier run's with the same records where its code is the
     code that runs now (finished: read back) or it is unfinished (run again there), else a new ``<env_name>_<id>``.
