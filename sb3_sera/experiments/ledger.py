@@ -22,12 +22,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
 
 from sb3_sera.experiments.claims import Claim, claims_section, default_claims, evaluate, load_claims
 from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sb3_sera.experiments.identity import identity_lines, load_code_hashes
-from sb3_sera.experiments.records import RESULT_FILE, RunResult, env_name, read_record, run_ids
+from sb3_sera.experiments.records import NPZ_ERRORS, RESULT_FILE, RunResult, env_name, load_result, read_record, run_ids
 from sb3_sera.experiments.report import Skipped, group_runs, load_runs, run_folders, section_table, write_report
 from sb3_sera.experiments.report.write import section_claims
 
@@ -106,27 +107,78 @@ def _refusal(folder: Path, args: dict[str, Any], config: dict[str, Any]) -> str 
     paths = _absolute_paths(args) + _absolute_paths(config)
     if paths:
         return f"its records hold absolute paths of the machine that ran it: {paths}"
+    return _damage(folder)
+
+
+def _damage(folder: Path) -> str | None:
+    """
+    What is wrong with a finished run's files, or None: each parses, the evaluations cover the budget (one every
+    ``eval_freq`` steps, the last at the budget), and every per-evaluation record has one entry per evaluation.
+    """
+    try:
+        run = load_result(folder)
+    except ValueError as error:
+        return str(error).removeprefix(f"{folder}: ")
+    if run.eval_freq:
+        expected = run.n_timesteps // run.eval_freq
+        if len(run.timesteps) != expected or run.timesteps[-1] != expected * run.eval_freq:
+            return (
+                f"evaluations.npz holds {len(run.timesteps)} evaluations up to step {run.timesteps[-1]}, not "
+                f"{expected} up to {expected * run.eval_freq} (budget {run.n_timesteps}, one every {run.eval_freq})"
+            )
+    for name in (BIAS_FILE, DIAGNOSTICS_FILE):
+        if not (folder / name).exists():
+            continue
+        try:
+            with np.load(folder / name) as records:
+                arrays = {key: records[key] for key in records.files}
+        except NPZ_ERRORS as error:
+            return f"unreadable {name} ({type(error).__name__}: {error})"
+        if "timesteps" not in arrays or list(arrays["timesteps"]) != run.timesteps:
+            return f"{name} does not hold one record per evaluation of evaluations.npz"
     return None
+
+
+def _read_records(folder: Path) -> tuple[Path, dict[str, Any], dict[str, Any]] | str:
+    """A run's records folder, ``args.yml`` and ``config.yml``, or why they cannot be read (naming the file)."""
+    args_files = sorted(folder.glob("*/args.yml"))
+    if not args_files:
+        return "no <env_name>/args.yml record: its settings are unknown"
+    records, read = args_files[0].parent, []
+    for name in ("args.yml", "config.yml"):
+        try:
+            record = read_record(records / name)
+        except (OSError, yaml.YAMLError) as error:
+            return f"{records.name}/{name} is unreadable: {' '.join(str(error).split())[:200]}"
+        if not isinstance(record, dict) or not record:
+            return f"{records.name}/{name} is {'empty' if not record else 'not a mapping'}"
+        read.append(record)
+    return records, read[0], read[1]
 
 
 def add_runs(sources: Sequence[str | Path], ledger: str | Path = LEDGER_DIR) -> AddOutcome:
     """
     Copy the finished runs under ``sources`` (``<source>/<variant>/<env_name>_<id>/``) into the ledger, each under the
-    next free id of its variant and task; runs already there, unfinished, or without their commit are refused.
-    A copy is made in a temporary folder and renamed into place, so an interrupted add leaves no partial run.
+    next free id of its variant and task. Every file of every run is checked first (records parse, evaluations and
+    per-evaluation records load and cover the budget); runs already there, unfinished, damaged or without their
+    commit are refused by name. The accepted runs are copied into a hidden staging folder, then renamed into place;
+    any error on the way removes what was placed and the staging folder, so the ledger gets all of them or none.
     """
     ledger = Path(ledger)
     outcome = AddOutcome()
+    missing = [str(source) for source in sources if not Path(source).is_dir()]
+    if missing:
+        raise FileNotFoundError(f"no such folder: {', '.join(missing)}")
     known = {run_identity(folder) for folder in run_folders(ledger) if any(folder.glob("*/args.yml"))}
+    accepted: list[tuple[Path, Path, Path]] = []
+    next_ids: dict[tuple[Path, str], int] = {}
     for source in sources:
-        if not Path(source).is_dir():
-            raise FileNotFoundError(f"{source}: no such folder")
         for folder in run_folders(Path(source)):
-            if not any(folder.glob("*/args.yml")):
-                outcome.refused.append(Skipped(str(folder), "no <env_name>/args.yml record: its settings are unknown"))
+            read = _read_records(folder)
+            if isinstance(read, str):
+                outcome.refused.append(Skipped(str(folder), read))
                 continue
-            records = next(folder.glob("*/args.yml")).parent
-            args, config = read_record(records / "args.yml"), read_record(records / "config.yml")
+            records, args, config = read
             reason = _refusal(folder, args, config)
             identity = run_identity(folder)
             if reason is None and identity in known:
@@ -135,18 +187,32 @@ def add_runs(sources: Sequence[str | Path], ledger: str | Path = LEDGER_DIR) -> 
                 outcome.refused.append(Skipped(str(folder), reason))
                 continue
             variant_dir = ledger / str(args.get("variant") or args["algo"])
-            target = variant_dir / f"{env_name(str(args['env']))}_{max(run_ids(variant_dir, str(args['env'])), default=0) + 1}"
-            partial = variant_dir / f".{target.name}.partial"
-            shutil.rmtree(partial, ignore_errors=True)
-            (partial / records.name).mkdir(parents=True)
+            key = (variant_dir, str(args["env"]))
+            next_ids[key] = next_ids.get(key, max(run_ids(variant_dir, key[1]), default=0)) + 1
+            accepted.append((folder, records, variant_dir / f"{env_name(key[1])}_{next_ids[key]}"))
+            known.add(identity)
+    staging = ledger / f".add-{os.getpid()}.partial"
+    placed: list[Path] = []
+    try:
+        for folder, records, target in accepted:
+            copy = staging / target.relative_to(ledger)
+            (copy / records.name).mkdir(parents=True)
             for name in ("config.yml", "args.yml"):
-                shutil.copy2(records / name, partial / records.name / name)
+                shutil.copy2(records / name, copy / records.name / name)
             for path in [*(folder / name for name in RUN_FILES), *sorted(folder.glob("*.monitor.csv"))]:
                 if path.exists():
-                    shutil.copy2(path, partial / path.name)
-            partial.rename(target)
-            known.add(identity)
-            outcome.added.append(target)
+                    shutil.copy2(path, copy / path.name)
+        for _, _, target in accepted:
+            target.parent.mkdir(parents=True, exist_ok=True)
+            (staging / target.relative_to(ledger)).rename(target)
+            placed.append(target)
+    except BaseException:
+        for target in placed:
+            shutil.rmtree(target, ignore_errors=True)
+        raise
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    outcome.added = placed
     return outcome
 
 

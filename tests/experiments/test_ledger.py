@@ -3,6 +3,7 @@
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -89,8 +90,26 @@ def _copy_run(bench_out: Path, tmp_path: Path, change) -> Path:
             ),
             "absolute paths of the machine that ran it: ['/home/me/x.yml']",
         ),
+        (
+            lambda run: (run / "Pendulum-v1" / "args.yml").write_text("algo: serasac\nvariant: [serasac"),
+            "Pendulum-v1/args.yml is unreadable: ",
+        ),
+        (
+            lambda run: (run / "evaluations.npz").write_bytes((run / "evaluations.npz").read_bytes()[:300]),
+            "unreadable evaluations.npz (",
+        ),
+        (
+            lambda run: (run / BIAS_FILE).write_bytes((run / BIAS_FILE).read_bytes()[:200]),
+            f"unreadable {BIAS_FILE} (",
+        ),
+        (
+            lambda run: np.savez(
+                run / "evaluations.npz", timesteps=np.array([100]), results=np.ones((1, 1)), ep_lengths=np.ones((1, 1))
+            ),
+            "evaluations.npz holds 1 evaluations up to step 100, not 2 up to 200 (budget 200, one every 100)",
+        ),
     ],
-    ids=["unfinished", "no-commit", "absolute-path"],
+    ids=["unfinished", "no-commit", "absolute-path", "half-written-args", "truncated-evaluations", "truncated-bias", "short"],
 )
 def test_add_refuses_what_cannot_be_trusted(bench_out, tmp_path, change, reason):
     outcome = ledger.add_runs([_copy_run(bench_out, tmp_path, change)], tmp_path / "results")
@@ -130,3 +149,27 @@ def test_readme_results_are_what_the_ledger_gives_today():
     # Every number between the README's ledger markers is regenerated from results/ by `sb3-sera ledger report`
     readme = (ROOT / "README.md").read_text()
     assert ledger.current_block(readme) == ledger.readme_block(ROOT / "results", docs=ledger.DOCS_DIR)
+
+
+def test_add_is_all_or_nothing_and_names_each_refusal(bench_out, tmp_path, monkeypatch):
+    # One damaged run beside a good one: the good one is added, the damaged one refused by name
+    source = _copy_run(bench_out, tmp_path, lambda run: (run / "Pendulum-v1" / "config.yml").write_text("- [x"))
+    shutil.copytree(bench_out / "sac", source / "sac")
+    results = tmp_path / "results"
+    outcome = ledger.add_runs([source], results)
+    assert [path.relative_to(results).as_posix() for path in outcome.added] == ["sac/Pendulum-v1_1"]
+    assert "Pendulum-v1/config.yml is unreadable" in outcome.refused[0].reason
+    # A copy that fails part way places nothing and leaves no staging folder behind
+    calls = []
+
+    def failing_copy(*args, **kwargs):
+        calls.append(args)
+        if len(calls) > 3:
+            raise OSError("No space left on device")
+        return shutil.copyfile(*args[:2])
+
+    monkeypatch.setattr(ledger.shutil, "copy2", failing_copy)
+    fresh = tmp_path / "fresh"
+    with pytest.raises(OSError, match="No space left"):
+        ledger.add_runs([bench_out], fresh)
+    assert not list(fresh.rglob("*.npz")) and not list(fresh.glob(".add-*"))
