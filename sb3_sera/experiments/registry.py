@@ -150,10 +150,20 @@ def check_hyperparams(algo: str, hyperparams: dict[str, Any], where: str) -> Non
             f"{where}: {zoo_only} are applied by rl-zoo3's training only: run this task with `sb3-sera train`, "
             "or give an entry without them"
         )
-    unknown = sorted(set(hyperparams) - accepted_hyperparams(algo))
+    check_known(algo, hyperparams, accepted_hyperparams(algo), where)
+
+
+def check_known(algo: str, hyperparams: dict[str, Any], allowed: set[str], where: str) -> None:
+    """Raise ``ValueError`` naming the keys of ``hyperparams`` not in ``allowed``, with the nearest allowed names."""
+    import difflib
+
+    unknown = sorted(set(hyperparams) - allowed)
     if unknown:
+        guesses = {key: difflib.get_close_matches(key, allowed, n=1) for key in unknown}
+        hints = "; ".join(f"did you mean {match[0]!r} for {key!r}?" for key, match in guesses.items() if match)
         raise ValueError(
-            f"{where}: unknown hyperparameter(s) {unknown} for {algo}; allowed: {sorted(accepted_hyperparams(algo))}"
+            f"{where}: unknown hyperparameter(s) {unknown} for {algo}{'; ' + hints if hints else ''}; "
+            f"allowed: {sorted(allowed)}"
         )
 
 

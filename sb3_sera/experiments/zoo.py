@@ -18,7 +18,14 @@ from sb3_sera.ace import ACE
 from sb3_sera.common.capabilities import capabilities
 from sb3_sera.ctde.algorithms import MADDPG, MAPPO, MASAC, MATD3
 from sb3_sera.experiments.evaluation import InitialStateBiasCallback
-from sb3_sera.experiments.registry import hyperparams_file
+from sb3_sera.experiments.registry import (
+    ZOO_ONLY_KEYS,
+    accepted_hyperparams,
+    algorithm_default,
+    check_known,
+    default_hyperparams,
+    hyperparams_file,
+)
 from sb3_sera.iet import IET
 from sb3_sera.sera import SERASAC
 from sb3_sera.sunrise import SUNRISE
@@ -200,10 +207,81 @@ def zoo_argv(command: str, argv: Sequence[str]) -> list[str]:
         algo = _flag_value(args, "--algo") or "ppo"
         env_id = _flag_value(args, "--env")
         check_algo_task(algo, env_id)
+        args = safe_params(algo, args)
+        if env_id is not None and _flag_value(args, "-conf", "--conf-file") is None:
+            check_budget(algo, env_id, args)
         conf_file = hyperparams_file(algo, env_id)
         if _flag_value(args, "-conf", "--conf-file") is None and conf_file.parent == HYPERPARAMS_DIR:
             args += ["--conf-file", str(conf_file)]
     return args
+
+
+PARAMS_FLAGS = ("-params", "--hyperparams")
+
+
+def _params_items(args: Sequence[str]) -> tuple[int, int]:
+    """Where the ``-params`` items lie in ``args``: ``(start, end)``, empty where there are none."""
+    for index, arg in enumerate(args):
+        if arg in PARAMS_FLAGS:
+            end = index + 1
+            while end < len(args) and not args[end].startswith("-"):
+                end += 1
+            return index + 1, end
+    return len(args), len(args)
+
+
+def params_overrides(args: Sequence[str]) -> dict[str, Any]:
+    """
+    The ``-params key:value`` items of a zoo command line, read without executing them: ``policy_kwargs`` by
+    :func:`~sb3_sera.experiments.policy_kwargs.parse_policy_kwargs`, every other value as a Python literal or else
+    as the string itself (``lin_3e-4``); ``ValueError`` naming an item without a colon.
+    """
+    from sb3_sera.experiments.compare import parse_value
+    from sb3_sera.experiments.policy_kwargs import parse_policy_kwargs
+
+    start, end = _params_items(args)
+    overrides: dict[str, Any] = {}
+    for item in args[start:end]:
+        key, sep, value = item.partition(":")
+        if not sep or not key:
+            raise ValueError(f"-params item {item!r} is invalid: expected key:value (e.g. sera_alpha:0.3)")
+        overrides[key] = parse_policy_kwargs(value) if key == "policy_kwargs" else parse_value(value)
+    return overrides
+
+
+def safe_params(algo: str, args: Sequence[str]) -> list[str]:
+    """
+    ``args`` with each ``-params`` item rewritten as the literal it was read as (:func:`params_overrides`): rl-zoo3
+    passes every value to ``eval``, which then rebuilds the value and can run nothing else. Keys the algorithm does not
+    take are refused first, with the nearest allowed name.
+    """
+    overrides = params_overrides(args)
+    if not overrides:
+        return list(args)
+    allowed = accepted_hyperparams(algo) | set(ZOO_ONLY_KEYS) | {"n_timesteps"}
+    check_known(algo, overrides, allowed, "-params")
+    start, end = _params_items(args)
+    items = []
+    for item in args[start:end]:
+        key, _, text = item.partition(":")
+        # policy_kwargs stay as their checked text: only literals, dict(...) and the allowed torch names
+        items.append(f"{key}:{text if key == 'policy_kwargs' else repr(overrides[key])}")
+    return [*args[:start], *items, *args[end:]]
+
+
+def check_budget(algo: str, env_id: str, args: Sequence[str]) -> None:
+    """``ValueError`` where ``learning_starts`` (the task's entry, then ``-params``) reaches the budget of the run."""
+    entry, _ = default_hyperparams(algo, env_id)
+    settings = {**entry, **params_overrides(args)}
+    flag = _flag_value(args, "-n", "--n-timesteps")
+    budget = int(flag) if flag is not None and int(flag) > 0 else settings.get("n_timesteps")
+    starts = settings.get("learning_starts", algorithm_default(algo, "learning_starts"))
+    if budget is not None and isinstance(starts, int | float) and starts >= float(budget):
+        steps = int(float(budget))
+        raise ValueError(
+            f"{algo} on {env_id}: learning_starts={starts} is at or above the budget n_timesteps={steps}: the run would "
+            f"train nothing; lower learning_starts (e.g. -params learning_starts:{max(steps // 10, 1)}) or raise the budget"
+        )
 
 
 def check_algo_task(algo: str, env_id: str | None) -> None:

@@ -208,6 +208,31 @@ def test_an_algorithm_on_a_task_of_the_other_kind_is_refused_with_the_reason(alg
         main(["train", "--algo", algo, "--env", env, "-n", "10"])
 
 
+def test_train_reads_params_without_executing_them(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    base = ["--algo", "serasac", "--env", "Pendulum-v1", "-n", "300"]
+    # Each value rewritten as the literal it was read as: rl-zoo3's eval rebuilds it and can run nothing else
+    args = zoo_argv(
+        "train", [*base, "-params", "learning_starts:100", "learning_rate:lin_1e-3", "policy_kwargs:dict(net_arch=[64])"]
+    )
+    assert args[args.index("-params") + 1 : args.index("-params") + 4] == [
+        "learning_starts:100",
+        "learning_rate:'lin_1e-3'",
+        "policy_kwargs:dict(net_arch=[64])",
+    ]
+    code = "policy_kwargs:__import__('os').system('touch marker')"
+    for params, message in [
+        ([code], r"is not allowed; write literals, dict\(key=value\) and these names only"),
+        (["sera_alfa:0.3"], r"unknown hyperparameter\(s\) \['sera_alfa'\] for serasac; did you mean 'sera_alpha'"),
+        (["learning_starts:500"], r"learning_starts=500 is at or above the budget n_timesteps=300: the run would train"),
+        (["learning_starts"], r"-params item 'learning_starts' is invalid: expected key:value"),
+    ]:
+        with pytest.raises(SystemExit, match=message):
+            main(["train", *base, "-params", *params])
+    # Refused before rl-zoo3 starts: nothing ran, no folder was made
+    assert not (tmp_path / "marker").exists() and not (tmp_path / "logs").exists()
+
+
 def test_the_zoo_reads_the_capabilities_the_classes_declare():
     from sb3_sera.common.capabilities import Capabilities, capabilities
 
