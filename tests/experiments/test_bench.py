@@ -35,7 +35,7 @@ def write(tmp_path, text: str):
         (("Pendulum-v1", "Pendulum-v9"), r"unknown task 'Pendulum-v9'; registered ids include .*sb3_sera/"),
         (
             ("batch_size: 32", "batch_sise: 32"),
-            r"unknown hyperparameter\(s\) \['batch_sise'\] for serasac; did you mean 'batch_size' for 'batch_sise'\?; allowed: ",
+            r"unknown hyperparameter\(s\) \['batch_sise'\] for serasac; did you mean 'batch_size' for 'batch_sise'\?; allowed",
         ),
         (("seeds: [0]", "seed: [0]"), r"unknown key\(s\) \['seed'\]; allowed: "),
         (("batch_size: 32", "batch_size: 0"), r"serasac on Pendulum-v1: batch_size=0 is invalid: it must be an integer >= 1"),
