@@ -1,4 +1,4 @@
-"""MuJoCo's warnings, for the package's commands: through Python's warnings, never into ``MUJOCO_LOG.TXT``."""
+"""MuJoCo's warnings, once the package is imported: through Python's warnings, never into ``MUJOCO_LOG.TXT``."""
 
 import warnings
 
@@ -11,8 +11,8 @@ def route_mujoco_warnings() -> None:
     """
     Send MuJoCo's warnings to Python's ``warnings`` (as ``RuntimeWarning``, so that a filter can silence or raise
     them) instead of the console and ``MUJOCO_LOG.TXT`` in the working directory, and drop
-    :data:`KNOWN_MODEL_WARNINGS`. The ``sb3-sera`` command and its run workers call it; a user's own script keeps
-    MuJoCo's defaults unless it calls it too. Does nothing without MuJoCo.
+    :data:`KNOWN_MODEL_WARNINGS`. ``import sb3_sera`` calls it, and so do the ``sb3-sera`` command's run workers.
+    Does nothing without MuJoCo.
     """
     try:
         import mujoco

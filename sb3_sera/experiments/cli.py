@@ -18,7 +18,12 @@ def _print_report(results: list[RunResult], out: str, name: str, reps: int) -> N
     """Report the runs just made in a new ``<out>/reports/<name>_<n>/`` and print its tables."""
     folder = report.next_report_folder(Path(out) / "reports", name)
     path = report.write_report(results, folder, reps=reps, sources=[out], log=lambda line: print(line, file=sys.stderr))
-    print(f"\n{path.read_text()}\nReport: {path}\nRun folders: {out}/<variant>/<env_name>_<id>/")
+    print(f"\n{path.read_text()}\nReport: {path}{_figures(path)}\nRun folders: {out}/<variant>/<env_name>_<id>/")
+
+
+def _figures(report_path: Path) -> str:
+    """The report's figures, a line each, to follow its path."""
+    return "\nFigures:" + "".join(f"\n  {figure}" for figure in sorted(report_path.parent.glob("*.png")))
 
 
 def _compare(args: argparse.Namespace) -> None:
@@ -60,7 +65,7 @@ def _report(args: argparse.Namespace) -> None:
         log=lambda line: print(line, file=sys.stderr),
     )
     print(path.read_text())
-    print(f"\nReport: {path}")
+    print(f"\nReport: {path}{_figures(path)}")
 
 
 def _ledger_add(args: argparse.Namespace) -> None:
@@ -74,7 +79,7 @@ def _ledger_add(args: argparse.Namespace) -> None:
 
 def _ledger_report(args: argparse.Namespace) -> None:
     path, readme = ledger.write_results(args.ledger, args.docs, args.readme, reps=args.reps)
-    print(f"Report: {path}\nResults block rewritten in {readme}")
+    print(f"Report: {path}{_figures(path)}\nResults block rewritten in {readme}")
 
 
 def _add_run_flags(parser: argparse.ArgumentParser) -> None:

@@ -22,6 +22,8 @@ def test_compare_cli_end_to_end(tmp_path, capsys):
     main(argv)
     printed = capsys.readouterr().out
     assert "| serasac | 1 |" in printed and "| sac | 1 |" in printed
+    # The report's figures are named after its path
+    assert f"Figures:\n  {out / 'reports' / 'Pendulum-v1_1' / 'Pendulum-v1_240_auc.png'}" in printed
     report = out / "reports" / "Pendulum-v1_1"
     assert (report / "Pendulum-v1_240_curves.png").stat().st_size > 0
     assert "final return IQM [95% CI]" in (report / "report.md").read_text()

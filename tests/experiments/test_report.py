@@ -297,3 +297,18 @@ def test_table_and_figure_intervals_are_computed_once(tmp_path):
     _, low, high = stats.iqm_interval(scores, REPS)
     _, table_low, table_high = stats.iqm_interval(np.array(finals)[:, None], REPS)
     assert (low[-1], high[-1]) == (table_low[0], table_high[0])
+
+
+def test_figures_draw_no_band_below_three_runs_and_say_why_a_panel_is_empty():
+    from sb3_sera.experiments.report.figures import _draw_band, _empty_reason, pyplot
+
+    fig, ax = pyplot().subplots()
+    curve = ([1, 2, 3], [1.0, 2.0, 3.0])
+    _draw_band(ax, [curve, curve], reps=REPS, label="two", color="red")
+    assert len(ax.lines) == 1 and not ax.collections  # the tables print no interval below three runs either
+    _draw_band(ax, [curve] * 3, reps=REPS, label="three", color="blue")
+    assert len(ax.collections) == 1
+    pyplot().close(fig)
+    assert _empty_reason("critic_lr", {1: [{"timesteps": np.array([1])}]}).startswith("no run recorded critic_lr")
+    nan = {1: [{"mc_error_corr": np.array([np.nan])}]}
+    assert _empty_reason("mc_error_corr", nan).startswith("no finite value: the Monte Carlo errors")

@@ -30,6 +30,9 @@ def test_readme_python_block_runs_as_written(block, tmp_path):
         [sys.executable, "-c", script], cwd=tmp_path, env=environment, capture_output=True, text=True, timeout=600
     )
     assert completed.returncode == 0, f"{script}\n{completed.stderr[-3000:]}"
+    # Nothing large in the working directory, and no MUJOCO_LOG.TXT (importing sb3_sera routes MuJoCo's warnings)
+    written = {path.relative_to(tmp_path).as_posix(): path.stat().st_size for path in tmp_path.rglob("*") if path.is_file()}
+    assert "MUJOCO_LOG.TXT" not in written and max(written.values(), default=0) < 50_000_000, written
 
 
 def test_the_readme_cites_the_paper_and_points_only_inside_the_repository():

@@ -82,10 +82,15 @@ def save_figure(fig: Any, path: Path) -> None:
 def _draw_band(
     ax: Any, series: Sequence[tuple[ArrayLike, ArrayLike]], reps: int, label: str, color: Any, linestyle: str = "-"
 ) -> str:
-    """IQM over runs with its bootstrap interval as a band; returns the grid's sentence (empty for shared steps)."""
+    """
+    IQM over runs with its bootstrap interval as a band (from :data:`MIN_RUNS` runs on, as the tables print
+    intervals); returns the grid's sentence (empty for shared steps).
+    """
     grid, matrix, note = aligned(series)
     point, low, high = stats.iqm_interval(matrix[:, None, :], reps)
     ax.plot(grid, point, color=color, linestyle=linestyle, label=f"{label} (n={len(series)})")
+    if len(series) < MIN_RUNS:
+        return note
     if linestyle == "-":
         ax.fill_between(grid, low, high, color=color, alpha=0.2)
     else:
@@ -133,7 +138,7 @@ def plot_curves(
         ax.axhline(0.0, color="black", linewidth=0.8)
     ax.set_xlabel("environment steps")
     ax.set_ylabel(ylabel)
-    ax.set_title(f"{title}\nIQM over runs, band: 95% stratified-bootstrap CI", fontsize=10)
+    ax.set_title(f"{title}\nIQM over runs, band: 95% stratified-bootstrap CI (n >= {MIN_RUNS})", fontsize=10)
     ax.legend(fontsize="small")
     save_figure(fig, path)
     return notes
@@ -194,10 +199,13 @@ def plot_diagnostics(groups: Sequence[RunGroup], path: Path, colors: dict[str, A
         ax.set_title(title, fontsize=10)
         ax.set_xlabel("environment steps")
         ax.set_ylabel(ylabel)
-        if key in ("td_target_var", "td_target_relative_var"):
-            ax.set_yscale("log")
         if ax.lines:
+            if key in ("td_target_var", "td_target_relative_var"):
+                ax.set_yscale("log")
             ax.legend(fontsize="x-small")
+        else:
+            ax.text(0.5, 0.5, _empty_reason(key, records), ha="center", va="center", wrap=True, fontsize=9,
+                    transform=ax.transAxes)  # fmt: skip
     fig.suptitle(
         "Critic diagnostics at each evaluation (1024 replayed transitions; Monte Carlo errors: the evaluation episodes' "
         "steps); IQM over runs, band: 95% bootstrap CI",
@@ -207,13 +215,26 @@ def plot_diagnostics(groups: Sequence[RunGroup], path: Path, colors: dict[str, A
     return True
 
 
+def _empty_reason(key: str, records: dict[int, list[dict[str, np.ndarray]]]) -> str:
+    """Why a diagnostics panel has no curve: no run recorded the quantity, or none recorded a finite value of it."""
+    recorded = [r for runs in records.values() for r in runs if key in r]
+    if not recorded:
+        return f"no run recorded {key}\n(an older record, or an algorithm\nwithout this diagnostic)"
+    if key == "mc_error_corr":
+        return (
+            "no finite value: the Monte Carlo errors\nneed evaluation episodes whose returns\n"
+            "differ between states (none kept)"
+        )
+    return f"no finite value of {key}\nat any evaluation"
+
+
 def plot_auc_bars(groups: Sequence[RunGroup], path: Path, colors: dict[str, Any], reps: int) -> None:
     """
     Normalized AUC per group (paper Fig. 4b): IQM over runs as a marker with its interval, runs as dots, on an axis
     fitted to the values (not drawn from zero, so that differences between groups show whatever the sign).
     """
     plt = pyplot()
-    fig, ax = plt.subplots(figsize=(1.6 * len(groups) + 2, 4.6))
+    fig, ax = plt.subplots(figsize=(max(1.6 * len(groups) + 2, 6.0), 4.8))
     for index, group in enumerate(groups):
         aucs = group.aucs
         point, low, high = (value[0] for value in stats.iqm_interval(aucs[:, None], reps))
@@ -228,7 +249,7 @@ def plot_auc_bars(groups: Sequence[RunGroup], path: Path, colors: dict[str, Any]
     ax.set_ylabel("normalized AUC (average evaluation return)")
     ax.grid(axis="y", alpha=0.3)
     ax.set_title(
-        f"Normalized AUC (Fig. 4b)\nsquare: IQM over runs, bar: 95% stratified-bootstrap CI (n >= {MIN_RUNS}), dots: runs",
+        f"Normalized AUC (Fig. 4b)\nsquare: IQM over runs; bar: 95% stratified-bootstrap CI (n >= {MIN_RUNS})\ndots: runs",
         fontsize=9,
     )
     save_figure(fig, path)
