@@ -2,6 +2,7 @@
 
 import argparse
 import os
+import re
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -93,6 +94,20 @@ def _add_run_flags(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--reps", type=int, default=stats.REPS, help="bootstrap resamples of the report's intervals")
 
 
+class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """The description as written, and every option's default after its help (unless the help names it)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        return text if "default:" in text else super()._get_help_string(action) or ""
+
+
+def plain_text(doc: str | None) -> str:
+    """A module's docstring for the terminal: Sphinx roles and double backquotes as plain text."""
+    text = re.sub(r":\w+:`~?(?:[\w.]*\.)?([\w]+)`", r"\1", doc or "")
+    return text.replace("``", "")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="sb3-sera", description="SERA for Stable-Baselines3")
     from sb3_sera import __version__
@@ -102,15 +117,15 @@ def build_parser() -> argparse.ArgumentParser:
     comp = commands.add_parser(
         "compare",
         help="train algorithms on one task for several seeds with hyperparams/<algo>.yml, then report them",
-        description=compare.__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description=plain_text(compare.__doc__),
+        formatter_class=HelpFormatter,
     )
     comp.add_argument("--algos", nargs="+", default=list(compare.DEFAULT_ALGOS), help="algorithm names")
     comp.add_argument("--env", default=compare.DEFAULT_ENV, help="Gymnasium id")
-    comp.add_argument("--seeds", nargs="+", type=int, default=list(compare.DEFAULT_SEEDS))
-    comp.add_argument("-n", "--n-timesteps", type=int, default=compare.DEFAULT_TIMESTEPS)
+    comp.add_argument("--seeds", nargs="+", type=int, default=list(compare.DEFAULT_SEEDS), help="seeds of every algorithm")
+    comp.add_argument("-n", "--n-timesteps", type=int, default=compare.DEFAULT_TIMESTEPS, help="environment steps of a run")
     comp.add_argument("--eval-freq", type=int, default=1000, help="environment steps between evaluations")
-    comp.add_argument("--eval-episodes", type=int, default=5)
+    comp.add_argument("--eval-episodes", type=int, default=5, help="episodes of each evaluation")
     comp.add_argument("--n-jobs", type=int, default=None, help="runs at a time (default: one per core)")
     comp.add_argument(
         "--out", default="logs/compare", help="root of the run folders (a finished run found there is not run again)"
@@ -121,7 +136,7 @@ def build_parser() -> argparse.ArgumentParser:
         nargs="+",
         default=None,
         help="overrides of hyperparams/<algo>.yml: key:value for every algorithm (learning_starts:1000), "
-        "algo:key:value for one (serasac:sera_alpha:0.3); all checked before the first run",
+        "algo:key:value for one (serasac:sera_alpha:0.3); all checked before the first run (default: none)",
     )
     comp.add_argument(
         "--studies",
@@ -135,20 +150,22 @@ def build_parser() -> argparse.ArgumentParser:
     grid = commands.add_parser(
         "bench",
         help="run a grid of variants x tasks x seeds from a YAML file, locally or on Ray; resumes where it stopped",
-        description=bench.__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description=plain_text(bench.__doc__),
+        formatter_class=HelpFormatter,
     )
     grid.add_argument("grid", help="the grid's YAML file")
     grid.add_argument("--out", default="logs/bench", help="root of the run folders")
     grid.add_argument("--n-jobs", type=int, default=None, help="local runs at a time (default: one per core)")
-    grid.add_argument("--ray-address", default=None, help="run on this Ray cluster ('auto': the one started here)")
+    grid.add_argument(
+        "--ray-address", default=None, help="run on this Ray cluster ('auto': the one started here; default: local processes)"
+    )
     _add_run_flags(grid)
     grid.set_defaults(func=_bench)
     rep = commands.add_parser(
         "report",
         help="a Markdown report (IQM and bootstrap intervals, paper tables, figures) from rl-zoo3-style run folders",
-        description=report.__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description=plain_text(report.__doc__),
+        formatter_class=HelpFormatter,
     )
     rep.add_argument("roots", nargs="+", help="folders holding <variant>/<env_name>_<id>/ run folders")
     rep.add_argument("--out", default="logs/report", help="folder for report.md and its figures")
@@ -161,8 +178,8 @@ def build_parser() -> argparse.ArgumentParser:
     led = commands.add_parser(
         "ledger",
         help="the committed results ledger (results/): add finished runs, regenerate the README's results from it",
-        description=ledger.__doc__,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description=plain_text(ledger.__doc__),
+        formatter_class=HelpFormatter,
     )
     led_commands = led.add_subparsers(dest="ledger_command", required=True)
     led_add = led_commands.add_parser("add", help="copy finished runs' records from bench/compare outputs into the ledger")

@@ -56,6 +56,8 @@ class RunSpec:
         """The run's ``args.yml`` (rl-zoo3's names where the zoo has one): :meth:`run_args`, then how it ran."""
         return {
             **self.run_args(),
+            # rl-zoo3's enjoy and record-video read the env's keywords from here, as from a zoo run's args.yml
+            "env_kwargs": self.hyperparams.get("env_kwargs"),
             "num_threads": self.num_threads,
             "device": self.device,
             "hyperparams_source": self.hyperparams_source,

@@ -22,6 +22,8 @@ def test_compare_cli_end_to_end(tmp_path, capsys):
     main(argv)
     printed = capsys.readouterr().out
     assert "| serasac | 1 |" in printed and "| sac | 1 |" in printed
+    # A run folder of compare is a zoo run folder: rl-zoo3's enjoy opens it
+    main(["enjoy", "--algo", "serasac", "--env", "Pendulum-v1", "-f", str(out), "--exp-id", "1", "-n", "10", "--no-render"])
     # The report's figures are named after its path
     assert f"Figures:\n  {out / 'reports' / 'Pendulum-v1_1' / 'Pendulum-v1_240_auc.png'}" in printed
     report = out / "reports" / "Pendulum-v1_1"
@@ -133,6 +135,9 @@ def test_module_entry_point_help():
     completed = subprocess.run([sys.executable, "-m", "sb3_sera", "compare", "--help"], capture_output=True, text=True)
     assert completed.returncode == 0
     assert "--n-timesteps" in completed.stdout and "--num-threads" in completed.stdout
+    # Plain text with every default, no Sphinx markup
+    assert "environment steps of a run (default: 6000)" in completed.stdout and "(default: one per core)" in completed.stdout
+    assert "``" not in completed.stdout and ":mod:" not in completed.stdout and "(default: None)" not in completed.stdout
 
 
 def test_policy_follows_the_task():
