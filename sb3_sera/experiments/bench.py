@@ -151,8 +151,10 @@ def load_grid(path: str | Path, num_threads: int | None = 1, device: str = "auto
                 except ValueError as error:
                     raise ValueError(f"{path}: variant {error}") from None
                 specs.append(spec)
+    for spec in specs:
+        spec.studies = list(grid.get("studies") or [])
     check_specs(specs)
-    check_matched(specs, grid.get("studies") or [], str(path))
+    check_matched(specs, str(path))
     return specs
 
 

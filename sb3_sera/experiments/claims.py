@@ -323,6 +323,17 @@ def group_settings(group: Any) -> dict[str, Any]:
     return {**shared_settings(group.algo, group.hyperparams), **evaluation}
 
 
+def group_studies(group: Any) -> set[str]:
+    """The shared settings every run of a report group recorded as studied by its comparison."""
+    return set.intersection(*(set(run.studies) for run in group.runs)) if group.runs else set()
+
+
+def groups_unmatched(first: Any, second: Any) -> dict[str, dict[str, Any]]:
+    """The shared settings two report groups differ in, but those both their comparisons studied."""
+    settings = {first.label: group_settings(first), second.label: group_settings(second)}
+    return unmatched_settings(settings, sorted(group_studies(first) & group_studies(second)))
+
+
 @dataclass
 class ClaimResult:
     """What the runs say of one claim."""
@@ -348,15 +359,9 @@ def _matched_groups(claim: Claim, groups: Sequence[Any]) -> tuple[Any, Any, str]
     if not arms or not baselines:
         missing = [name for name, found in ((claim.arm, arms), (claim.baseline, baselines)) if not found]
         return None, None, f"no runs of {' or '.join(missing)}"
-    pairs = [
-        (a, b)
-        for a in arms
-        for b in baselines
-        if not unmatched_settings({claim.arm: group_settings(a), claim.baseline: group_settings(b)})
-    ]
+    pairs = [(a, b) for a in arms for b in baselines if not groups_unmatched(a, b)]
     if not pairs:
-        differing = unmatched_settings({claim.arm: group_settings(arms[0]), claim.baseline: group_settings(baselines[0])})
-        return None, None, f"unmatched: {unmatched_text(differing)}"
+        return None, None, f"unmatched: {unmatched_text(groups_unmatched(arms[0], baselines[0]))}"
     arm, baseline = max(pairs, key=lambda pair: (len(pair[0].runs), len(pair[1].runs)))
     others = len(arms) + len(baselines) - 2
     return arm, baseline, (f"matched settings groups ({others} other group(s) left out)" if others else "")

@@ -109,6 +109,8 @@ def run_comparison(
         for algo in algos
         for seed in seeds
     ]
+    for spec in specs:
+        spec.studies = list(studies)
     check_specs(specs)
-    check_matched(specs, studies)
+    check_matched(specs)
     return execute(specs, out_dir, n_jobs=n_jobs, progress_bar=progress_bar)

@@ -201,6 +201,8 @@ class RunResult:
     #: Steps between evaluations and episodes per evaluation, as recorded (None: not recorded, as by rl-zoo3's train)
     eval_freq: int | None = None
     eval_episodes: int | None = None
+    #: The shared settings its comparison studied (its arms could differ in them), as recorded
+    studies: list[str] = field(default_factory=list)
 
 
 def load_result(folder: Path) -> RunResult:
@@ -270,4 +272,5 @@ def load_result(folder: Path) -> RunResult:
         folder=str(folder),
         eval_freq=None if eval_freq is None else int(eval_freq),
         eval_episodes=None if eval_episodes is None else int(eval_episodes),
+        studies=[str(key) for key in args.get("studies") or []],
     )

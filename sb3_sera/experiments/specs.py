@@ -39,6 +39,8 @@ class RunSpec:
     device: str = "auto"
     #: Where the hyperparameters came from
     hyperparams_source: str = ""
+    #: The shared settings the comparison this run belongs to studies (its arms may differ in them)
+    studies: list[str] = field(default_factory=list)
 
     def run_args(self) -> dict[str, Any]:
         """The ``args.yml`` entries that, with ``config.yml``, make two runs the same run."""
@@ -61,6 +63,7 @@ class RunSpec:
             "num_threads": self.num_threads,
             "device": self.device,
             "hyperparams_source": self.hyperparams_source,
+            "studies": list(self.studies),
             "versions": package_versions(),
             **source_revision(),
             "code_digest": code_digest(),
@@ -160,15 +163,14 @@ def make_spec(
     return spec
 
 
-def check_matched(specs: Sequence[RunSpec], studies: Sequence[str] = (), where: str = "the comparison") -> None:
+def check_matched(specs: Sequence[RunSpec], where: str = "the comparison") -> None:
     """
     Raise ``ValueError`` where the arms compared on one task differ in a shared setting
     (:data:`~sb3_sera.experiments.registry.SHARED_SETTINGS`, the budget, the evaluations) that the comparison does
-    not declare in ``studies``, naming the setting and each arm's value: results of arms trained with other settings
-    than each other's say nothing about the algorithms.
-
-    :param studies: the settings the comparison is about (they may differ between arms)
+    not study (the specs' ``studies``), naming the setting and each arm's value: results of arms trained with other
+    settings than each other's say nothing about the algorithms.
     """
+    studies = sorted({key for spec in specs for key in spec.studies})
     unknown = sorted(set(studies) - {*SHARED_SETTINGS, "n_timesteps", "eval_freq", "eval_episodes"})
     if unknown:
         raise ValueError(

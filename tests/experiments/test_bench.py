@@ -70,6 +70,7 @@ def test_arms_that_differ_in_a_shared_setting_are_refused_unless_studied(tmp_pat
     # Declared as what the grid studies, the same arms are accepted; a name that is no shared setting is refused
     specs = bench.load_grid(write(tmp_path, unmatched + "studies: [learning_starts]\n"))
     assert {spec.hyperparams["learning_starts"] for spec in specs} == {50, 60}
+    assert all(spec.args()["studies"] == ["learning_starts"] for spec in specs)  # recorded for the report
     with pytest.raises(ValueError, match=r"studies names \['critic_lr_max'\], not shared settings; allowed: "):
         bench.load_grid(write(tmp_path, unmatched + "studies: [critic_lr_max]\n"))
 

@@ -312,3 +312,21 @@ def test_figures_draw_no_band_below_three_runs_and_say_why_a_panel_is_empty():
     assert _empty_reason("critic_lr", {1: [{"timesteps": np.array([1])}]}).startswith("no run recorded critic_lr")
     nan = {1: [{"mc_error_corr": np.array([np.nan])}]}
     assert _empty_reason("mc_error_corr", nan).startswith("no finite value: the Monte Carlo errors")
+
+
+def test_the_report_prints_shared_settings_and_marks_undeclared_differences(tmp_path):
+    root = tmp_path / "runs"
+    for seed in range(3):
+        fake_run(root, "serasac", seed + 1, seed, [1.0, 2.0, 3.0], hyperparams={"batch_size": 256, "learning_starts": 10})
+        fake_run(root, "masac", seed + 1, seed, [1.0, 2.0, 2.0], hyperparams={"batch_size": 64, "learning_starts": 10},
+                 algo="masac")  # fmt: skip
+    report = report_roots([root], tmp_path / "report", reps=REPS).read_text()
+    assert "Shared settings of every group: learning_starts=10, buffer_size=1000000, gamma=0.99" in report
+    assert "Not matched to serasac: masac differs in batch_size: serasac=256, masac=64." in report
+    assert table_row(report, "masac")[6] == "unmatched (batch_size)"
+    # Declared by the comparison that made both (its grid's studies): compared, and said so
+    for args_file in root.glob("*/*/*/args.yml"):
+        args_file.write_text(yaml.safe_dump({**yaml.safe_load(args_file.read_text()), "studies": ["batch_size"]}))
+    report = report_roots([root], tmp_path / "report", overwrite=True, reps=REPS).read_text()
+    assert "Declared difference (the comparison studies it): masac differs from serasac in batch_size" in report
+    assert table_row(report, "masac")[6].startswith("1.00 [")

@@ -10,7 +10,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from sb3_sera.experiments import stats
-from sb3_sera.experiments.claims import group_settings
+from sb3_sera.experiments.claims import group_settings, groups_unmatched
 from sb3_sera.experiments.records import FINAL_EVALUATIONS
 from sb3_sera.experiments.registry import unmatched_settings, unmatched_text
 from sb3_sera.experiments.report.groups import RunGroup, differing_keys
@@ -66,11 +66,7 @@ def section_table(groups: Sequence[RunGroup], reps: int) -> list[str]:
         paper_value = paper.get(PAPER_NAMES.get(group.variant, ""))
         paper_cell = "" if paper_value is None else f"{paper_value[0]:g} ± {paper_value[1]:g}"
         improvement_cell = p_cell = poi_cell = ""
-        unmatched = (
-            unmatched_settings({reference.label: group_settings(reference), group.label: group_settings(group)})
-            if reference is not None and group is not reference
-            else {}
-        )
+        unmatched = groups_unmatched(reference, group) if reference is not None and group is not reference else {}
         if unmatched:
             poi_cell = p_cell = improvement_cell = f"unmatched ({', '.join(unmatched)})"
         elif reference is not None and group is not reference:
@@ -132,9 +128,18 @@ def settings_lines(groups: Sequence[RunGroup]) -> list[str]:
     reference, _ = reference_group(groups)
     if reference is not None:
         for group in groups:
-            differing = unmatched_settings({reference.label: settings[reference.label], group.label: settings[group.label]})
-            if group is not reference and differing:
+            if group is reference:
+                continue
+            studied = {reference.label: settings[reference.label], group.label: settings[group.label]}
+            declared = unmatched_settings(studied)
+            differing = groups_unmatched(reference, group)
+            if differing:
                 lines.append(f"Not matched to {reference.label}: {group.label} differs in {unmatched_text(differing)}.")
+            elif declared:
+                lines.append(
+                    f"Declared difference (the comparison studies it): {group.label} differs from {reference.label} in "
+                    f"{unmatched_text(declared)}."
+                )
     return lines
 
 
