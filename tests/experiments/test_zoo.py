@@ -102,7 +102,21 @@ def test_enjoy_and_record_video_load_off_policy_models_with_a_one_transition_buf
 
 def test_record_video_of_a_mamujoco_task(tmp_path, sb3_sera):
     folder = str(tmp_path)
-    sb3_sera("train", "--algo", "masac", "--env", "sb3_sera/Pusher-3p-v0", "-n", "100", "-f", folder, "--seed", "0")
+    sb3_sera(
+        "train",
+        "--algo",
+        "masac",
+        "--env",
+        "sb3_sera/Pusher-3p-v0",
+        "-n",
+        "100",
+        "-f",
+        folder,
+        "--seed",
+        "0",
+        "-params",
+        "learning_starts:50",
+    )
     videos = tmp_path / "videos"
     args = ["--algo", "masac", "--env", "sb3_sera/Pusher-3p-v0", "-f", folder, "--exp-id", "1", "-n", "20", "-o", str(videos)]
     sb3_sera("record-video", *args, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
@@ -127,8 +141,9 @@ def test_train_then_enjoy_a_zoo_run(tmp_path, sb3_sera):
     evaluate = ["--eval-freq", "100", "--eval-episodes", "2"]
     sb3_sera("train", "--algo", "serasac", "--env", "Pendulum-v1", "-n", "300", "-f", folder, "--seed", "0", *evaluate)
     sb3_sera(
-        "train", "--algo", "masac", "--env", "sb3_sera/SimpleSpread-v0", "-n", "200", "-f", folder, "--seed", "0", *evaluate
-    )
+        "train", "--algo", "masac", "--env", "sb3_sera/SimpleSpread-v0", "-n", "200", "-f", folder, "--seed", "0", *evaluate,
+        "-params", "learning_starts:50",
+    )  # fmt: skip
     run = tmp_path / "serasac" / "Pendulum-v1_1"
     assert (run / "Pendulum-v1.zip").exists() and (run / "0.monitor.csv").exists()
     # The zoo saved the hyperparameters it read from this repository's file
