@@ -12,7 +12,7 @@ identically on this machine with these package versions.
 
     OMP_NUM_THREADS=1 python benchmarks/param_hashes.py                      # the working tree, every configuration
     OMP_NUM_THREADS=1 python benchmarks/param_hashes.py --ledger-commits     # the ledger's commits as well
-    OMP_NUM_THREADS=1 python benchmarks/param_hashes.py --ledger-commits --write results/code_hashes.yml
+    OMP_NUM_THREADS=1 python benchmarks/param_hashes.py --ledger-commits --jobs 2 --write results/code_hashes.yml
 
 ``--ledger-commits`` checks out every commit the ledger's runs name into a temporary git worktree and hashes there
 (this script, run against that commit's package). ``--write`` stores the table in the ledger, where the report reads
@@ -28,6 +28,7 @@ import subprocess
 import sys
 import tempfile
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -137,11 +138,27 @@ def hash_tree(tree: Path, found: dict[str, dict[str, Any]]) -> dict[str, str]:
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
+def hash_commit(commit: str, found: dict[str, dict[str, Any]]) -> dict[str, str]:
+    """:func:`hash_tree` at ``commit`` (a temporary git worktree), or of the working tree for ``"working tree"``."""
+    if commit == "working tree":
+        return hash_tree(ROOT, found)
+    with tempfile.TemporaryDirectory() as folder:
+        tree = Path(folder) / "tree"
+        subprocess.run(
+            ["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tree), commit], check=True, capture_output=True
+        )
+        try:
+            return hash_tree(tree, found)
+        finally:
+            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], check=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--ledger", default=str(ROOT / "results"), help="the ledger whose configurations are hashed")
     parser.add_argument("--ledger-commits", action="store_true", help="also hash at every commit the ledger names")
     parser.add_argument("--write", default=None, help="store the table (YAML) here: the ledger's code_hashes.yml")
+    parser.add_argument("--jobs", type=int, default=1, help="trees hashed at a time (one core each)")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
@@ -153,19 +170,13 @@ def main() -> None:
         return
     found = configurations(Path(args.ledger))
     head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
-    columns: dict[str, dict[str, str]] = {"working tree": hash_tree(ROOT, found)}
+    trees = ["working tree"]
     if args.ledger_commits:
-        commits = sorted({commit for entry in found.values() for commit in entry["commits"]})
-        for commit in commits:
-            with tempfile.TemporaryDirectory() as folder:
-                tree = Path(folder) / "tree"
-                subprocess.run(
-                    ["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tree), commit], check=True, capture_output=True
-                )
-                try:
-                    columns[commit] = hash_tree(tree, found)
-                finally:
-                    subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], check=True)
+        trees += sorted({commit for entry in found.values() for commit in entry["commits"]})
+    # One child process per tree, --jobs at a time (each one torch thread)
+    with ThreadPoolExecutor(max_workers=args.jobs) as pool:
+        hashed = list(pool.map(lambda tree: hash_commit(tree, found), trees))
+    columns = dict(zip(trees, hashed, strict=True))
     print(f"working tree: {head[:10]}; {STEPS} steps, learning_starts {LEARNING_STARTS}, one thread")
     print("| configuration | " + " | ".join(name[:10] for name in columns) + " |")
     print("|---|" + "---|" * len(columns))
@@ -176,7 +187,7 @@ def main() -> None:
     if args.write:
         table = {
             "settings": {"steps": STEPS, "learning_starts": LEARNING_STARTS, "buffer_size": BUFFER_SIZE, "threads": 1},
-            "versions": {"torch": th.__version__, "python": sys.version.split()[0]},
+            "versions": {"torch": str(th.__version__), "python": sys.version.split()[0]},
             "hashes": {commit: column for commit, column in columns.items() if commit != "working tree"},
         }
         Path(args.write).write_text(yaml.safe_dump(table, sort_keys=True))

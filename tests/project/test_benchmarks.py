@@ -4,6 +4,7 @@ import subprocess
 import sys
 
 import pytest
+import yaml
 
 from tests.helpers import ROOT
 
@@ -28,7 +29,6 @@ TINY_TIMING = ["--blocks", "1", "--block-steps", "2", "--threads", "1"]
             "IET",
         ),
         ("memory.py", ["--env", "Pendulum-v1", "--buffer-size", "1000", "--gradient-steps", "2"], "SERASAC"),
-        ("param_hashes.py", ["--steps", "120"], "ACE Pendulum-v1"),
     ],
 )
 def test_benchmark_script_runs(script, args, expected):
@@ -36,3 +36,26 @@ def test_benchmark_script_runs(script, args, expected):
     result = subprocess.run(command, capture_output=True, text=True, timeout=600, cwd=BENCHMARKS)
     assert result.returncode == 0, result.stderr[-2000:]
     assert expected in result.stdout
+
+
+def test_param_hashes_of_a_ledger_at_its_commits(tmp_path):
+    # A one-run ledger made at this checkout's commit: the script hashes it in the working tree and at that commit
+    head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True, check=True)
+    records = tmp_path / "results" / "serasac" / "Pendulum-v1_1" / "Pendulum-v1"
+    records.mkdir(parents=True)
+    args = {"algo": "serasac", "variant": "serasac", "env": "Pendulum-v1", "git_commit": head.stdout.strip()}
+    (records / "args.yml").write_text(yaml.safe_dump(args))
+    config = {"policy": "MlpPolicy", "n_timesteps": 1000, "learning_starts": 100, "batch_size": 32}
+    (records / "config.yml").write_text(yaml.safe_dump(config))
+    table = tmp_path / "results" / "code_hashes.yml"
+    command = [sys.executable, str(BENCHMARKS / "param_hashes.py"), "--ledger", str(tmp_path / "results")]
+    result = subprocess.run(
+        [*command, "--ledger-commits", "--jobs", "2", "--write", str(table)], capture_output=True, text=True, timeout=600
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    row = next(line for line in result.stdout.splitlines() if line.startswith("| serasac Pendulum-v1 "))
+    working_tree, at_commit = (cell.strip() for cell in row.strip("|").split("|")[1:])
+    # Hashed in the working tree and at the commit that ran it (marked *); the table keeps the commits' columns
+    assert at_commit.endswith(" *") and len(working_tree) == 16
+    hashes = yaml.safe_load(table.read_text())["hashes"]
+    assert list(hashes) == [head.stdout.strip()] and list(hashes[head.stdout.strip()].values()) == [at_commit[:-2]]
