@@ -125,13 +125,23 @@ def closest_pair(run: RunResult) -> float | None:
     return float(distances.min() / distances.mean()) if distances.mean() > 0 else None
 
 
-def target_relative_variance(run: RunResult) -> float | None:
-    """The TD target's ``Var(y) / mean(y^2)`` averaged over the evaluations of the second half of training."""
-    records = load_diagnostics(run)
-    if records is None or "td_target_relative_var" not in records:
-        return None
-    late = records["timesteps"] >= run.n_timesteps / 2
-    return float(np.mean(records["td_target_relative_var"][late])) if late.any() else None
+def late_mean(key: str) -> Callable[[RunResult], float | None]:
+    """A summary: the diagnostic ``key`` averaged over the evaluations of the second half of training."""
+
+    def summary(run: RunResult) -> float | None:
+        records = load_diagnostics(run)
+        if records is None or key not in records:
+            return None
+        late = records["timesteps"] >= run.n_timesteps / 2
+        return float(np.mean(records[key][late])) if late.any() else None
+
+    return summary
+
+
+#: The TD target's ``Var(y) / mean(y^2)`` averaged over the evaluations of the second half of training
+target_relative_variance = late_mean("td_target_relative_var")
+#: The TD target's batch variance ``Var(y)`` averaged over the evaluations of the second half of training
+target_variance = late_mean("td_target_var")
 
 
 def _bias_after_start(run: RunResult) -> tuple[np.ndarray, np.ndarray] | None:
@@ -173,15 +183,6 @@ def signed_bias(run: RunResult) -> float | None:
     """``mean V(s0) - mean G`` averaged over the evaluations after ``learning_starts`` (below 0: underestimation)."""
     bias = _bias_after_start(run)
     return None if bias is None else float((bias[0] - bias[1]).mean())
-
-
-def target_variance(run: RunResult) -> float | None:
-    """The TD target's batch variance ``Var(y)`` averaged over the evaluations of the second half of training."""
-    records = load_diagnostics(run)
-    if records is None or "td_target_var" not in records:
-        return None
-    late = records["timesteps"] >= run.n_timesteps / 2
-    return float(np.mean(records["td_target_var"][late])) if late.any() else None
 
 
 def final_return(run: RunResult) -> float | None:
