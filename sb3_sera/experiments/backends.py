@@ -134,7 +134,7 @@ def _execute_locally(
         unfinished = [str(folder) for index, folder in enumerate(folders) if index not in outcomes]
         raise Interrupted(
             f"interrupted: {len(outcomes)} of {len(specs)} run(s) finished; {len(unfinished)} unfinished, left without "
-            f"result.json in {', '.join(unfinished)}: the same command resumes them"
+            f"result.json in {', '.join(unfinished)}: the same command resumes them from their last checkpoints"
         ) from None
     finally:
         if main_thread:

@@ -20,8 +20,8 @@ Each run starts from the task's entry in ``hyperparams/<algo>.yml`` (as ``sb3-se
 comparison holds fixed (``learning_starts``, ``batch_size``, ``buffer_size``, ``gamma``, ``tau``, ``train_freq``,
 ``gradient_steps``, the budget and the evaluations) unless ``studies`` names them. Everything is checked before the
 first run starts (each variant's model is built once on each task). Each run writes its rl-zoo3-style folder
-``<out>/<variant>/<env_name>_<id>/`` with its records; a finished run is never run again, so an interrupted grid
-resumes.
+``<out>/<variant>/<env_name>_<id>/`` with its records; a finished run is never run again, and an unfinished one goes
+on from its last checkpoint, so an interrupted grid resumes where it stopped.
 """
 
 from pathlib import Path
@@ -30,6 +30,7 @@ from typing import Any
 import yaml
 
 from sb3_sera.experiments.backends import execute
+from sb3_sera.experiments.checkpoint import CHECKPOINT_FREQ
 from sb3_sera.experiments.engine import check_specs
 from sb3_sera.experiments.records import RunResult
 from sb3_sera.experiments.registry import algorithm_classes, check_task
@@ -165,11 +166,18 @@ def run_grid(
     ray_address: str | None = None,
     num_threads: int | None = 1,
     device: str = "auto",
+    checkpoint_freq: int = CHECKPOINT_FREQ,
+    keep_checkpoints: bool = False,
 ) -> list[RunResult]:
     """
     Run a grid file's runs (see :func:`load_grid`).
 
+    :param checkpoint_freq: steps between a run's checkpoints (0: none): an interrupted grid resumes each unfinished
+        run from its last one (:mod:`~sb3_sera.experiments.checkpoint`)
+    :param keep_checkpoints: keep a finished run's last checkpoint (removed by default)
     :return: the results, in the grid's order
     """
     specs = load_grid(path, num_threads, device)
+    for spec in specs:
+        spec.checkpoint_freq, spec.keep_checkpoints = checkpoint_freq, keep_checkpoints
     return execute(specs, out_dir, n_jobs=n_jobs, ray_address=ray_address)

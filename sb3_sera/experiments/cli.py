@@ -12,6 +12,7 @@ import yaml
 from sb3_sera.common.mujoco_log import route_mujoco_warnings
 from sb3_sera.experiments import bench, compare, ledger, report, stats, zoo
 from sb3_sera.experiments.backends import Interrupted, default_threads
+from sb3_sera.experiments.checkpoint import CHECKPOINT_FREQ
 from sb3_sera.experiments.records import RunResult, env_name
 
 
@@ -43,6 +44,8 @@ def _compare(args: argparse.Namespace) -> None:
         num_threads=args.num_threads,
         device=args.device,
         studies=args.studies,
+        checkpoint_freq=args.checkpoint_freq,
+        keep_checkpoints=args.keep_checkpoints,
     )
     _print_report(results, out=args.out, name=env_name(args.env), reps=args.reps)
 
@@ -51,7 +54,14 @@ def _bench(args: argparse.Namespace) -> None:
     n_jobs = args.n_jobs or os.cpu_count() or 1
     threads = args.num_threads or (1 if args.ray_address else default_threads(n_jobs))
     results = bench.run_grid(
-        args.grid, args.out, n_jobs=n_jobs, ray_address=args.ray_address, num_threads=threads, device=args.device
+        args.grid,
+        args.out,
+        n_jobs=n_jobs,
+        ray_address=args.ray_address,
+        num_threads=threads,
+        device=args.device,
+        checkpoint_freq=args.checkpoint_freq,
+        keep_checkpoints=args.keep_checkpoints,
     )
     _print_report(results, out=args.out, name=Path(args.grid).stem, reps=args.reps)
 
@@ -92,6 +102,13 @@ def _add_run_flags(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--device", default="auto", help="torch device of every run: auto, cpu, cuda, cuda:1, ...")
     parser.add_argument("--reps", type=int, default=stats.REPS, help="bootstrap resamples of the report's intervals")
+    parser.add_argument(
+        "--checkpoint-freq",
+        type=int,
+        default=CHECKPOINT_FREQ,
+        help="steps between a run's checkpoints, from which the same command resumes an interrupted run (0: none)",
+    )
+    parser.add_argument("--keep-checkpoints", action="store_true", help="keep a finished run's last checkpoint")
 
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from sb3_sera.experiments.backends import default_threads, execute
+from sb3_sera.experiments.checkpoint import CHECKPOINT_FREQ
 from sb3_sera.experiments.engine import check_specs
 from sb3_sera.experiments.records import RunResult
 from sb3_sera.experiments.registry import algorithm_classes, check_task
@@ -69,6 +70,8 @@ def run_comparison(
     device: str = "auto",
     progress_bar: bool = True,
     studies: Sequence[str] = (),
+    checkpoint_freq: int = CHECKPOINT_FREQ,
+    keep_checkpoints: bool = False,
 ) -> list[RunResult]:
     """
     Train every algorithm on every seed, ``n_jobs`` runs at a time (default: one per core). Every setting is checked
@@ -79,6 +82,9 @@ def run_comparison(
     :param num_threads: torch threads per run (default: the cores divided among the ``n_jobs`` runs)
     :param studies: shared settings the algorithms may differ in (every other one must be the same for all:
         :func:`~sb3_sera.experiments.specs.check_matched`)
+    :param checkpoint_freq: steps between a run's checkpoints (0: none): the same command resumes an interrupted
+        run from its last one
+    :param keep_checkpoints: keep a finished run's last checkpoint (removed by default)
     :return: the results, ordered as ``algos`` x ``seeds``
     """
     known = algorithm_classes()
@@ -111,6 +117,7 @@ def run_comparison(
     ]
     for spec in specs:
         spec.studies = list(studies)
+        spec.checkpoint_freq, spec.keep_checkpoints = checkpoint_freq, keep_checkpoints
     check_specs(specs)
     check_matched(specs)
     return execute(specs, out_dir, n_jobs=n_jobs, progress_bar=progress_bar)

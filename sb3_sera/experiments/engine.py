@@ -6,6 +6,7 @@ progress file, and its records written, ``result.json`` last to mark the run fin
 
 import copy
 import json
+import shutil
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -22,6 +23,7 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_sera.common.mujoco_log import route_mujoco_warnings
 from sb3_sera.ctde.env import STATE_KEY
+from sb3_sera.experiments.checkpoint import CHECKPOINT_DIR, Checkpointer, has_checkpoint, load_checkpoint
 from sb3_sera.experiments.evaluation import InitialStateBiasCallback
 from sb3_sera.experiments.policy_kwargs import parse_policy_kwargs
 from sb3_sera.experiments.records import RESULT_FILE, RunResult, env_name, load_result, plain, records_dir, write_atomic
@@ -125,9 +127,7 @@ def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
         th.set_num_threads(spec.num_threads)
     env_kwargs = spec.hyperparams.get("env_kwargs") or {}
     n_envs = int(spec.hyperparams.get("n_envs", 1))
-    env = make_vec_env(spec.env_id, n_envs=n_envs, seed=spec.seed, monitor_dir=str(folder), env_kwargs=env_kwargs)
     eval_env = make_vec_env(spec.env_id, n_envs=1, seed=spec.seed + 10_000, env_kwargs=env_kwargs)
-    model = make_model(spec, env, tensorboard_log=str(folder))
     callback = InitialStateBiasCallback(
         eval_env,
         eval_freq=max(spec.eval_freq // n_envs, 1),
@@ -135,15 +135,35 @@ def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
         log_path=str(folder),
         verbose=0,
     )
+    elapsed = 0.0
+    if has_checkpoint(folder):
+        # Interrupted: on from the last checkpoint, to the same final parameters as a run never interrupted
+        eval_env.close()
+        model, elapsed = load_checkpoint(algorithm_classes()[spec.algo], folder, spec.device, callback)
+    else:
+        env = make_vec_env(spec.env_id, n_envs=n_envs, seed=spec.seed, monitor_dir=str(folder), env_kwargs=env_kwargs)
+        model = make_model(spec, env, tensorboard_log=str(folder))
+    callbacks: list[BaseCallback] = [callback, ProgressFile(folder / PROGRESS_FILE)]
+    # A model that draws per-episode latents (IET) rebuilds its evaluation wrapper when training starts: not checkpointed
+    if spec.checkpoint_freq > 0 and not hasattr(model, "with_latents"):
+        callbacks.append(Checkpointer(folder, spec.checkpoint_freq, callback, elapsed))
     start = time.perf_counter()
-    progress = ProgressFile(folder / PROGRESS_FILE)
-    model.learn(spec.n_timesteps, callback=[callback, progress], tb_log_name=f"{spec.variant}_seed{spec.seed}")
-    wall_time = time.perf_counter() - start
+    model.learn(
+        spec.n_timesteps - model.num_timesteps,
+        callback=callbacks,
+        tb_log_name=f"{spec.variant}_seed{spec.seed}",
+        reset_num_timesteps=model.num_timesteps == 0,
+    )
+    wall_time = elapsed + time.perf_counter() - start
     (folder / PROGRESS_FILE).unlink(missing_ok=True)
     model.save(folder / env_name(spec.env_id))
-    env.close()
-    eval_env.close()
+    assert model.env is not None
+    model.env.close()
+    callback.eval_env.close()
     # Written last: its presence marks the run as finished. Threads and device as the worker saw them
     result = {"wall_time_s": wall_time, "torch_threads": th.get_num_threads(), "device": str(model.device)}
     write_atomic(folder / RESULT_FILE, json.dumps(result))
+    if not spec.keep_checkpoints:
+        for name in (CHECKPOINT_DIR, f"{CHECKPOINT_DIR}.old", f"{CHECKPOINT_DIR}.partial"):
+            shutil.rmtree(folder / name, ignore_errors=True)
     return load_result(folder)

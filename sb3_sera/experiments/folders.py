@@ -2,10 +2,10 @@
 The output folder of ``compare`` and ``bench``: a run folder for each spec, and the lock that keeps a second command
 out of it. A run whose records match an earlier run's gets that run's folder: a finished one is read back, not run
 again, only where the same code made it (the same digest of the package's source and the same package versions:
-``records.code_difference``; otherwise it is kept and the run trained again in a new folder); an interrupted one is
-run again there. A folder whose records
-are damaged is named with the file and the reason and left as it is. Any other run gets a new ``<env_name>_<id>``
-with the next free id, its records written at once (atomically). Every decision is announced per run.
+``records.code_difference``; otherwise it is kept and the run trained again in a new folder); an interrupted one goes
+on there from its last checkpoint (made by the same code) or, without one, from step 0. A folder whose records are
+damaged is named with the file and the reason and left as it is. Any other run gets a new ``<env_name>_<id>`` with
+the next free id, its records written at once (atomically). Every decision is announced per run.
 """
 
 import os
@@ -18,6 +18,7 @@ from typing import Any
 
 import yaml
 
+from sb3_sera.experiments.checkpoint import has_checkpoint
 from sb3_sera.experiments.records import (
     RESULT_FILE,
     code_difference,
@@ -67,11 +68,18 @@ def assign_folders(specs: Sequence[RunSpec], out_dir: str | Path, notice: Callab
             if not same:
                 continue
             stale = code_difference(read_record(records_dir(folder, spec.env_id) / "args.yml"), current)
-            if finished and stale is not None:
+            resumable = has_checkpoint(folder)
+            if (finished or resumable) and stale is not None:
                 taken.add(folder)
-                notice(f"{folder}: finished, but not by the code that runs now ({stale}): kept; trained again")
+                state = "finished" if finished else "interrupted with a checkpoint"
+                notice(f"{folder}: {state}, but not by the code that runs now ({stale}): kept; trained again")
                 continue
-            notice(f"{folder}: " + ("finished by the same code: read back" if finished else "unfinished: run again there"))
+            if finished:
+                notice(f"{folder}: finished by the same code: read back")
+            elif resumable:
+                notice(f"{folder}: interrupted: resumed there from its last checkpoint")
+            else:
+                notice(f"{folder}: unfinished, no checkpoint: run again there from step 0")
             match = folder
             break
         if match is None:

@@ -10,6 +10,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from sb3_sera.experiments.checkpoint import CHECKPOINT_FREQ
 from sb3_sera.experiments.records import code_digest, package_versions, plain, source_revision
 from sb3_sera.experiments.registry import (
     SHARED_SETTINGS,
@@ -41,6 +42,10 @@ class RunSpec:
     hyperparams_source: str = ""
     #: The shared settings the comparison this run belongs to studies (its arms may differ in them)
     studies: list[str] = field(default_factory=list)
+    #: Steps between the run's checkpoints (0: none); an interrupted run continues from its last one
+    checkpoint_freq: int = CHECKPOINT_FREQ
+    #: Keep the last checkpoint of a finished run (by default it is removed)
+    keep_checkpoints: bool = False
 
     def run_args(self) -> dict[str, Any]:
         """The ``args.yml`` entries that, with ``config.yml``, make two runs the same run."""

@@ -112,7 +112,7 @@ def test_grid_runs_and_resumes(tmp_path, capsys):
     assert (out / "reports" / "grid_2" / "report.md").exists()
     notices = capsys.readouterr().err
     assert f"{kept.parent}: finished by the same code: read back" in notices
-    assert f"{redone.parent}: unfinished: run again there" in notices
+    assert f"{redone.parent}: unfinished, no checkpoint: run again there from step 0" in notices
     # A finished run made by other code is kept and trained again in a new folder; a half-written record is named
     # with its file and left as it is, its run made again in a new folder
     args_file = kept.parent / "Pendulum-v1" / "args.yml"

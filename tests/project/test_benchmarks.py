@@ -29,6 +29,11 @@ TINY_TIMING = ["--blocks", "1", "--block-steps", "2", "--threads", "1"]
             "IET",
         ),
         ("memory.py", ["--env", "Pendulum-v1", "--buffer-size", "1000", "--gradient-steps", "2"], "SERASAC"),
+        (
+            "checkpoint_cost.py",
+            ["--env", "Pendulum-v1", "--filled", "500", "--buffer-size", "2000", "--repeats", "1"],
+            "replay_buffer.pkl",
+        ),
     ],
 )
 def test_benchmark_script_runs(script, args, expected):

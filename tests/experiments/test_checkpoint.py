@@ -1,0 +1,69 @@
+"""True resume: a run interrupted at a random step continues from its last checkpoint to the same final parameters."""
+
+import copy
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch as th
+from stable_baselines3.common.callbacks import BaseCallback
+
+from sb3_sera.experiments import engine
+from sb3_sera.experiments.checkpoint import CHECKPOINT_DIR, has_checkpoint
+from sb3_sera.experiments.folders import assign_folders
+from sb3_sera.experiments.registry import algorithm_classes
+from sb3_sera.experiments.specs import make_spec
+from tests.helpers import CTDE_TASK
+
+
+class _Stop(BaseCallback):
+    """Stands in for a kill: raises KeyboardInterrupt at a given step."""
+
+    at = 0
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__()
+
+    def _on_step(self) -> bool:
+        if self.num_timesteps >= _Stop.at:
+            raise KeyboardInterrupt
+        return True
+
+
+def _parameters(folder, spec) -> dict[str, th.Tensor]:
+    model = algorithm_classes()[spec.algo].load(folder / f"{spec.env_id.replace('/', '-')}.zip", device="cpu")
+    return copy.deepcopy(model.policy.state_dict())
+
+
+@pytest.mark.parametrize(("algo", "env_id"), [("serasac", "Pendulum-v1"), ("masac", CTDE_TASK)])
+def test_an_interrupted_run_resumes_to_the_same_final_parameters(tmp_path, monkeypatch, algo, env_id):
+    overrides = {"learning_starts": 100, "batch_size": 32, "buffer_size": 2000}
+    spec = make_spec(algo, algo, env_id, seed=0, n_timesteps=600, overrides=overrides, eval_freq=150, n_eval_episodes=1)
+    spec.device = "cpu"
+    # Uninterrupted, without checkpoints
+    whole = copy.deepcopy(spec)
+    whole.checkpoint_freq = 0
+    (straight,) = assign_folders([whole], tmp_path / "straight")
+    engine.train_one(whole, straight)
+    # Checkpoints every 100 steps, a kill at a random step between two of them, then the same run again
+    spec.checkpoint_freq = 100
+    (resumed,) = assign_folders([spec], tmp_path / "resumed")
+    _Stop.at = int(np.random.default_rng().integers(230, 470))
+    with monkeypatch.context() as patch:
+        patch.setattr(engine, "ProgressFile", _Stop)
+        with pytest.raises(KeyboardInterrupt):
+            engine.train_one(spec, resumed)
+    assert has_checkpoint(resumed) and not (resumed / "result.json").exists()
+    engine.train_one(spec, resumed)
+    first, second = _parameters(straight, spec), _parameters(resumed, spec)
+    assert first.keys() == second.keys()
+    for name in first:
+        assert th.equal(first[name], second[name]), f"{name} differs after a kill at step {_Stop.at}"
+    # The same evaluations, the same training episodes in the monitor file, and no checkpoint left behind
+    for name in ("evaluations.npz", "initial_state_bias.npz"):
+        with np.load(straight / name) as a, np.load(resumed / name) as b:
+            assert all(np.array_equal(a[key], b[key]) for key in a.files), name
+    columns = ["r", "l"]
+    monitors = [pd.read_csv(folder / "0.monitor.csv", skiprows=1)[columns] for folder in (straight, resumed)]
+    assert monitors[0].equals(monitors[1])
+    assert not (resumed / CHECKPOINT_DIR).exists()
