@@ -10,6 +10,7 @@ import shutil
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch as th
@@ -30,14 +31,36 @@ from sb3_sera.experiments.records import RESULT_FILE, RunResult, env_name, load_
 from sb3_sera.experiments.registry import RUN_KEYS, algorithm_classes
 from sb3_sera.experiments.specs import RunSpec
 
+#: The keys whose text value rl-zoo3 reads as a schedule (``lin_3e-4``: linear from 3e-4 to 0), as its train does
+SCHEDULE_KEYS = ("learning_rate", "clip_range", "clip_range_vf", "delta_std")
+
+
+def schedules(hyperparams: dict[str, Any]) -> dict[str, Any]:
+    """
+    The values of :data:`SCHEDULE_KEYS` given as text turned into rl-zoo3's linear schedules (its public
+    ``linear_schedule``), as ``sb3-sera train`` reads the same YAML entry; ``ValueError`` naming any other text.
+    """
+    from rl_zoo3.utils import linear_schedule
+
+    converted = {}
+    for key in SCHEDULE_KEYS:
+        value = hyperparams.get(key)
+        if not isinstance(value, str):
+            continue
+        kind, _, initial = value.partition("_")
+        try:
+            if kind != "lin":
+                raise ValueError
+            converted[key] = linear_schedule(float(initial))
+        except ValueError:
+            raise ValueError(f"{key}={value!r} is not a schedule: write a number, or lin_<initial value> (lin_3e-4)") from None
+    return converted
+
 
 def make_model(spec: RunSpec, env: VecEnv, tensorboard_log: str | None = None) -> BaseAlgorithm:
     """The spec's model on ``env``, its hyperparameters turned into objects as rl-zoo3 does."""
-    from rl_zoo3.exp_manager import ExperimentManager
-
     kwargs = {key: value for key, value in spec.hyperparams.items() if key not in RUN_KEYS}
-    # Schedules given as strings ("lin_3e-4") become rl-zoo3's schedule objects
-    kwargs.update(ExperimentManager._preprocess_schedules({k: v for k, v in kwargs.items() if isinstance(v, str)}))
+    kwargs.update(schedules(kwargs))
     if isinstance(kwargs.get("policy_kwargs"), str):
         kwargs["policy_kwargs"] = parse_policy_kwargs(kwargs["policy_kwargs"])
     elif isinstance(kwargs.get("policy_kwargs"), dict):

@@ -183,3 +183,12 @@ def test_default_threads_follow_omp_num_threads(monkeypatch):
     monkeypatch.delenv("OMP_NUM_THREADS")
     monkeypatch.setattr(backends.os, "cpu_count", lambda: 8)
     assert backends.default_threads(1) == 8 and backends.default_threads(3) == 2 and backends.default_threads(16) == 1
+
+
+def test_schedules_read_as_rl_zoo3_reads_them():
+    converted = engine.schedules({"learning_rate": "lin_1e-3", "clip_range": 0.2, "gamma": "lin_0.9"})
+    # Only rl-zoo3's schedule keys, text only: linear from the initial value at progress 1 to 0 at progress 0
+    assert list(converted) == ["learning_rate"]
+    assert converted["learning_rate"](1.0) == pytest.approx(1e-3) and converted["learning_rate"](0.5) == pytest.approx(5e-4)
+    with pytest.raises(ValueError, match=r"learning_rate='exp_3' is not a schedule: write a number, or lin_<initial"):
+        engine.schedules({"learning_rate": "exp_3"})
