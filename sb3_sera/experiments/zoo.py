@@ -6,6 +6,7 @@ algorithm table (``rl_zoo3.utils.ALGOS``) and to its hyperparameter sampler and 
 """
 
 import runpy
+import shutil
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -318,7 +319,16 @@ def run_zoo(command: str, argv: Sequence[str]) -> None:
     args = zoo_argv(command, argv)
     saved = sys.argv
     sys.argv = [f"sb3-sera {command}", *args]
+    # A train that fails before its first evaluation or model leaves no run folder behind
+    runs = Path(_flag_value(args, "-f", "--log-folder") or "logs") / (_flag_value(args, "--algo") or "ppo")
+    before = set(runs.iterdir()) if runs.is_dir() else set()
     try:
         entry_points[command]()
+    except BaseException:
+        if command in ("train", "optimize") and runs.is_dir():
+            for folder in set(runs.iterdir()) - before:
+                if folder.is_dir() and not any(folder.glob("*.zip")) and not any(folder.glob("evaluations.npz")):
+                    shutil.rmtree(folder, ignore_errors=True)
+        raise
     finally:
         sys.argv = saved

@@ -246,6 +246,10 @@ def test_train_reads_params_without_executing_them(tmp_path, monkeypatch):
             main(["train", *base, "-params", *params])
     # Refused before rl-zoo3 starts: nothing ran, no folder was made
     assert not (tmp_path / "marker").exists() and not (tmp_path / "logs").exists()
+    # A value the model refuses once rl-zoo3 has made the run's folder: the folder goes with the failed start
+    with pytest.raises(SystemExit, match=r"sera_alpha=2.0 is out of range"):
+        main(["train", *base, "-params", "sera_alpha:2.0"])
+    assert not list((tmp_path / "logs" / "serasac").iterdir())
 
 
 def test_the_zoo_reads_the_capabilities_the_classes_declare():
