@@ -4,7 +4,6 @@ Train several algorithms on one task for several seeds, each with the task's hyp
 engine (:mod:`sb3_sera.experiments.engine`) and summarized by the report (:mod:`sb3_sera.experiments.report`).
 """
 
-import ast
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -13,6 +12,7 @@ from typing import Any
 from sb3_sera.experiments.backends import default_threads, execute
 from sb3_sera.experiments.checkpoint import CHECKPOINT_FREQ
 from sb3_sera.experiments.engine import check_specs
+from sb3_sera.experiments.policy_kwargs import parse_value
 from sb3_sera.experiments.records import RunResult
 from sb3_sera.experiments.registry import algorithm_classes, check_task
 from sb3_sera.experiments.specs import check_matched, make_spec
@@ -22,14 +22,6 @@ DEFAULT_ENV = "Pendulum-v1"
 DEFAULT_ALGOS = ("serasac", "sac")
 DEFAULT_SEEDS = (0, 1)
 DEFAULT_TIMESTEPS = 6_000
-
-
-def parse_value(text: str) -> Any:
-    """A ``-params`` value as rl-zoo3 reads it (a Python literal, else the string itself: ``lin_3e-4``)."""
-    try:
-        return ast.literal_eval(text)
-    except (ValueError, SyntaxError):
-        return text
 
 
 def parse_params(items: Sequence[str], algos: Sequence[str]) -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:

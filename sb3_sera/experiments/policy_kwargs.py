@@ -4,7 +4,8 @@
 rl-zoo3 writes them as Python (``dict(net_arch=[256, 256], activation_fn=nn.ReLU)``) and passes the text to
 ``eval``, so a hyperparameter file or a command line could run anything. This parser accepts only literals (numbers,
 strings, booleans, None, lists, tuples, dicts), ``dict(key=value, ...)`` and the names of :data:`NAMES`, and refuses
-everything else with the part it refused.
+everything else with the part it refused; :func:`parse_value` reads any other ``-params`` value as a literal or as
+its own text.
 """
 
 import ast
@@ -76,3 +77,11 @@ def parse_policy_kwargs(text: str) -> dict[str, Any]:
     if not isinstance(value, dict):
         raise ValueError(f"policy_kwargs {text!r} must be a dict, got {type(value).__name__}")
     return value
+
+
+def parse_value(text: str) -> Any:
+    """A ``-params`` value as rl-zoo3 reads it (a Python literal, else the string itself: ``lin_3e-4``), never run."""
+    try:
+        return ast.literal_eval(text)
+    except (ValueError, SyntaxError):
+        return text

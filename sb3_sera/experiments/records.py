@@ -110,7 +110,7 @@ def code_digest() -> str:
     SHA-256 (16 hex digits) of the package's source and hyperparameter files as they are now (names and bytes): the
     same digest means the same code, in a checkout with changes as in an installed wheel.
     """
-    from sb3_sera.experiments.zoo import HYPERPARAMS_DIR
+    from sb3_sera.experiments.registry import HYPERPARAMS_DIR
 
     package = Path(__file__).resolve().parents[1]
     digest = hashlib.sha256()

@@ -13,6 +13,12 @@ import gymnasium as gym
 import yaml
 from stable_baselines3.common.base_class import BaseAlgorithm
 
+from sb3_sera.ace import ACE
+from sb3_sera.ctde.algorithms import MADDPG, MAPPO, MASAC, MATD3
+from sb3_sera.iet import IET
+from sb3_sera.sera import SERASAC
+from sb3_sera.sunrise import SUNRISE
+
 #: rl-zoo3 keys that describe the run rather than the algorithm
 RUN_KEYS = ("n_timesteps", "policy", "n_envs", "env_kwargs", "noise_type", "noise_std")
 #: rl-zoo3 keys this engine does not apply: such entries are for ``sb3-sera train``
@@ -24,11 +30,35 @@ ENGINE_KEYS = ("policy", "env", "seed", "verbose", "device", "tensorboard_log", 
 SHARED_SETTINGS = ("learning_starts", "batch_size", "buffer_size", "gamma", "tau", "train_freq", "gradient_steps")
 
 
+#: The package's algorithms under their zoo names
+ZOO_ALGOS: dict[str, type[BaseAlgorithm]] = {
+    "serasac": SERASAC,
+    "masac": MASAC,
+    "matd3": MATD3,
+    "maddpg": MADDPG,
+    "mappo": MAPPO,
+    "sunrise": SUNRISE,
+    "ace": ACE,
+    "iet": IET,
+}
+
+
+def hyperparams_dir() -> Path:
+    """
+    The package's hyperparameter files: ``sb3_sera/hyperparams/`` in an installed wheel (where the build maps them),
+    else the repository's top-level ``hyperparams/`` (a checkout or an editable install), their one source.
+    """
+    installed = Path(__file__).resolve().parents[1] / "hyperparams"
+    return installed if installed.is_dir() else Path(__file__).resolve().parents[2] / "hyperparams"
+
+
+#: One YAML file per algorithm, keyed by env id (rl-zoo3's format), shipped with the package
+HYPERPARAMS_DIR = hyperparams_dir()
+
+
 def algorithm_classes() -> dict[str, type[BaseAlgorithm]]:
     """rl-zoo3's algorithms by lower-case name, with this package's added."""
     from rl_zoo3.utils import ALGOS
-
-    from sb3_sera.experiments.zoo import ZOO_ALGOS
 
     return {**ALGOS, **ZOO_ALGOS}
 
@@ -43,8 +73,6 @@ def hyperparams_file(algo: str, env_id: str | None = None) -> Path:
     task (or no task is named), else rl-zoo3's own. The package's ``sac.yml`` names only the paper's tasks, so stock
     SAC on any other task keeps rl-zoo3's entries.
     """
-    from sb3_sera.experiments.zoo import HYPERPARAMS_DIR
-
     ours = Path(HYPERPARAMS_DIR) / f"{algo}.yml"
     import rl_zoo3
 
@@ -67,8 +95,6 @@ def default_hyperparams(algo: str, env_id: str) -> tuple[dict[str, Any], str]:
     entries = _entries(path)
     # Named as the repository holds it (hyperparams/serasac.yml; rl-zoo3's: rl_zoo3/hyperparams/sac.yml), never by
     # the absolute path of this machine
-    from sb3_sera.experiments.zoo import HYPERPARAMS_DIR
-
     where = f"hyperparams/{path.name}" if path.parent == HYPERPARAMS_DIR else f"rl_zoo3/hyperparams/{path.name}"
     for key in (env_id, "default"):
         if key in entries:

@@ -15,11 +15,11 @@ from typing import Any
 import gymnasium as gym
 from stable_baselines3.common.base_class import BaseAlgorithm
 
-from sb3_sera.ace import ACE
 from sb3_sera.common.capabilities import capabilities
-from sb3_sera.ctde.algorithms import MADDPG, MAPPO, MASAC, MATD3
 from sb3_sera.experiments.evaluation import InitialStateBiasCallback
 from sb3_sera.experiments.registry import (
+    HYPERPARAMS_DIR,
+    ZOO_ALGOS,
     ZOO_ONLY_KEYS,
     accepted_hyperparams,
     algorithm_default,
@@ -27,38 +27,13 @@ from sb3_sera.experiments.registry import (
     default_hyperparams,
     hyperparams_file,
 )
-from sb3_sera.iet import IET
-from sb3_sera.sera import SERASAC
-from sb3_sera.sunrise import SUNRISE
 
-#: The package's algorithms under their zoo names
-ZOO_ALGOS: dict[str, type[BaseAlgorithm]] = {
-    "serasac": SERASAC,
-    "masac": MASAC,
-    "matd3": MATD3,
-    "maddpg": MADDPG,
-    "mappo": MAPPO,
-    "sunrise": SUNRISE,
-    "ace": ACE,
-    "iet": IET,
-}
 #: The algorithms that tune in the search space of the SB3 algorithm they are built on (their ``tunes_like``)
 ZOO_BASE_ALGOS = {
     name: capabilities(algo)["tunes_like"] for name, algo in ZOO_ALGOS.items() if capabilities(algo)["tunes_like"]
 }
 
 
-def hyperparams_dir() -> Path:
-    """
-    The package's hyperparameter files: ``sb3_sera/hyperparams/`` in an installed wheel (where the build maps them),
-    else the repository's top-level ``hyperparams/`` (a checkout or an editable install), their one source.
-    """
-    installed = Path(__file__).resolve().parents[1] / "hyperparams"
-    return installed if installed.is_dir() else Path(__file__).resolve().parents[2] / "hyperparams"
-
-
-#: One YAML file per algorithm, keyed by env id (rl-zoo3's format), shipped with the package
-HYPERPARAMS_DIR = hyperparams_dir()
 #: The zoo commands the CLI passes through
 ZOO_COMMANDS = ("train", "enjoy", "record-video", "optimize")
 #: The zoo commands that load a model only to run it
@@ -237,8 +212,7 @@ def params_overrides(args: Sequence[str]) -> dict[str, Any]:
     :func:`~sb3_sera.experiments.policy_kwargs.parse_policy_kwargs`, every other value as a Python literal or else
     as the string itself (``lin_3e-4``); ``ValueError`` naming an item without a colon.
     """
-    from sb3_sera.experiments.compare import parse_value
-    from sb3_sera.experiments.policy_kwargs import parse_policy_kwargs
+    from sb3_sera.experiments.policy_kwargs import parse_policy_kwargs, parse_value
 
     start, end = _params_items(args)
     overrides: dict[str, Any] = {}
