@@ -491,8 +491,9 @@ def bias_lines(groups: Sequence[Any]) -> list[str]:
             continue
         magnitude = [v for v in map(abs_bias, group.runs) if v is not None]
         relative = [v for v in map(relative_bias, group.runs) if v is not None]
+        spread = stats.sample_std(signed)
         rows.append(
-            f"| {group.label} | {len(signed)} | {np.mean(signed):.1f} ± {stats.sample_std(signed):.1f} "
+            f"| {group.label} | {len(signed)} | {np.mean(signed):.1f} ± {'n/a' if np.isnan(spread) else f'{spread:.1f}'} "
             f"| {np.mean(magnitude):.1f} | {np.mean(relative):.3f} | {sum(v < 0 for v in signed)} of {len(signed)} |"
         )
     if not rows:
