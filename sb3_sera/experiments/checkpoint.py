@@ -21,6 +21,7 @@ import io
 import pickle
 import random
 import shutil
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -253,14 +254,10 @@ class Checkpointer(BaseCallback):
         self._started = 0.0
 
     def _on_training_start(self) -> None:
-        import time
-
         self._started = time.perf_counter()
         self._next = (self.num_timesteps // self.every + 1) * self.every
 
     def _on_rollout_start(self) -> None:
-        import time
-
         if self.num_timesteps >= self._next:
             save_checkpoint(self.model, self.folder, self.evaluation, self.elapsed_s + time.perf_counter() - self._started)
             self._next = (self.num_timesteps // self.every + 1) * self.every

@@ -130,8 +130,8 @@ def settings_lines(groups: Sequence[RunGroup]) -> list[str]:
         for group in groups:
             if group is reference:
                 continue
-            studied = {reference.label: settings[reference.label], group.label: settings[group.label]}
-            declared = unmatched_settings(studied)
+            pair = {reference.label: settings[reference.label], group.label: settings[group.label]}
+            declared = unmatched_settings(pair)
             differing = groups_unmatched(reference, group)
             if differing:
                 lines.append(f"Not matched to {reference.label}: {group.label} differs in {unmatched_text(differing)}.")
