@@ -11,6 +11,7 @@ import signal
 import sys
 import threading
 import time
+import traceback
 from collections.abc import Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from multiprocessing import get_context
@@ -75,7 +76,8 @@ def execute(
     Run every spec in its folder (:func:`assign_folders`): on a local process pool of ``n_jobs`` workers (default:
     one per core), or as Ray tasks of one CPU each on the cluster at ``ray_address`` (``"auto"``: the one
     ``ray start`` made on this machine). Finished runs are read back, not run again. A failed run does not stop
-    the others: once all have ended, ``RuntimeError`` names the failed ones. A failed run that had not evaluated
+    the others: once all have ended, each failed run's traceback is printed to stderr and ``RuntimeError`` names
+    the failed ones with their errors. A failed run that had not evaluated
     yet leaves no folder behind; one that had keeps its logs, without the ``result.json`` of a finished run.
     ``out_dir`` is locked while the runs are made (:func:`output_lock`). One Ctrl-C (or SIGTERM) stops every
     worker and raises :class:`Interrupted` naming the unfinished runs, which the same command resumes.
@@ -91,7 +93,10 @@ def execute(
     failed = []
     for spec, folder, outcome in zip(specs, folders, outcomes, strict=True):
         if isinstance(outcome, BaseException):
-            failed.append(f"{spec.variant} on {spec.env_id} seed {spec.seed} ({folder}): {outcome}")
+            run = f"{spec.variant} on {spec.env_id} seed {spec.seed} ({folder})"
+            failed.append(f"{run}: {type(outcome).__name__}: {outcome}")
+            # The worker's traceback travels as the error's cause
+            print(f"{run} failed:\n" + "".join(traceback.format_exception(outcome)), file=sys.stderr)
             if not (folder / "evaluations.npz").exists():
                 shutil.rmtree(folder, ignore_errors=True)
     if failed:

@@ -17,10 +17,12 @@ The checkpoint is written into ``checkpoint.partial/`` and renamed into place, s
 whole. On resume the monitor file is cut back to the rows the checkpoint counted.
 """
 
+import importlib
 import io
 import pickle
 import random
 import shutil
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -63,17 +65,45 @@ def _set_state(obj: Any, state: dict[str, Any]) -> None:
     obj.__dict__.update(state)
 
 
+def _module_attribute(module: str, name: str) -> Any:
+    return getattr(importlib.import_module(module), name)
+
+
+def _rebound_class_reference(cls: type) -> tuple[str, str] | None:
+    """
+    Where a class rebound in its own module can still be found by name: ``(module, name)`` of a loaded module that
+    holds it, or None when its module holds it (the usual case) or no module does.
+
+    rl-zoo3 replaces ``gymnasium.wrappers.common.TimeLimit`` with its own subclass when imported; an env wrapped
+    before that (MaMuJoCo's inner single-agent env) keeps Gymnasium's class, which its module no longer names.
+    cloudpickle would pickle that class by value, and its methods by reference to Gymnasium's: a resumed process
+    would then build a copy of the class whose ``reset`` fails in ``super()``. This reference keeps the class itself.
+    """
+    name = cls.__name__
+    if "." in cls.__qualname__ or getattr(sys.modules.get(cls.__module__), name, None) is cls:
+        return None
+    for module_name, module in list(sys.modules.items()):
+        if module is not None and getattr(module, name, None) is cls:
+            return module_name, name
+    return None
+
+
 class _StatePickler(cloudpickle.Pickler):
     """
     Pickles environments with their state. Gymnasium's and PettingZoo's envs pickle as ``EzPickle`` (their
     constructor's arguments: a new, unstarted env); this pickler writes their attributes instead (the MuJoCo
-    simulation, the random generator, the episode under way), leaving out pygame's rendering surfaces.
+    simulation, the random generator, the episode under way), leaving out pygame's rendering surfaces. A class
+    rebound in its module is pickled by where it is still found (:func:`_rebound_class_reference`).
     """
 
     def reducer_override(self, obj: Any) -> Any:
         if isinstance(obj, EzPickle):
             state = {k: None if type(v).__module__.startswith("pygame") else v for k, v in vars(obj).items()}
             return object.__new__, (type(obj),), state, None, None, _set_state
+        if isinstance(obj, type):
+            reference = _rebound_class_reference(obj)
+            if reference is not None:
+                return _module_attribute, reference
         return super().reducer_override(obj)
 
 

@@ -1,6 +1,8 @@
 """True resume: a run interrupted at a random step continues from its last checkpoint to the same final parameters."""
 
 import copy
+import subprocess
+import sys
 
 import numpy as np
 import pandas as pd
@@ -67,3 +69,31 @@ def test_an_interrupted_run_resumes_to_the_same_final_parameters(tmp_path, monke
     monitors = [pd.read_csv(folder / "0.monitor.csv", skiprows=1)[columns] for folder in (straight, resumed)]
     assert monitors[0].equals(monitors[1])
     assert not (resumed / CHECKPOINT_DIR).exists()
+
+
+_ENV_ACROSS_PROCESSES = """
+import pickle, sys
+from stable_baselines3.common.env_util import make_vec_env
+from sb3_sera.experiments.checkpoint import _pickle_env
+env = make_vec_env("sb3_sera/HalfCheetah-6x1-v0", n_envs=1, seed=0)
+import rl_zoo3  # replaces gymnasium's TimeLimit after MaMuJoCo wrapped its inner env in it
+path = sys.argv[2]
+if sys.argv[1] == "save":
+    env.reset()
+    for _ in range(995):
+        env.step([env.action_space.sample()])
+    open(path, "wb").write(_pickle_env(env))
+else:
+    env = pickle.loads(open(path, "rb").read())
+    steps = [env.step([env.action_space.sample()])[2][0] for _ in range(10)]
+    assert any(steps), "the episode should have ended"
+"""
+
+
+def test_a_mamujoco_env_pickled_after_rl_zoo3_patched_timelimit_resets_in_a_new_process(tmp_path):
+    # A resumed run loads its environment in a new process: there, MaMuJoCo's episode must end and reset
+    script, pickled = tmp_path / "env_across_processes.py", tmp_path / "env.pkl"
+    script.write_text(_ENV_ACROSS_PROCESSES)
+    for step in ("save", "load"):
+        done = subprocess.run([sys.executable, str(script), step, str(pickled)], capture_output=True, text=True)
+        assert done.returncode == 0, done.stderr[-2000:]

@@ -102,7 +102,7 @@ def test_unknown_algorithm_is_refused_before_any_run(tmp_path):
     assert not any(tmp_path.iterdir())
 
 
-def test_a_failed_run_leaves_no_folder_and_is_named(tmp_path):
+def test_a_failed_run_leaves_no_folder_and_is_named(tmp_path, capsys):
     bad = specs.make_spec(
         variant="serasac",
         algo="serasac",
@@ -124,9 +124,12 @@ def test_a_failed_run_leaves_no_folder_and_is_named(tmp_path):
         n_eval_episodes=1,
     )
     with pytest.raises(
-        RuntimeError, match=r"1 of 2 run\(s\) failed: serasac on Pendulum-v1 seed 0 \(.*serasac/Pendulum-v1_1\)"
+        RuntimeError, match=r"1 of 2 run\(s\) failed: serasac on Pendulum-v1 seed 0 \(.*serasac/Pendulum-v1_1\): ValueError: "
     ):
         backends.execute([bad, good], tmp_path, n_jobs=2, progress_bar=False)
+    # The worker's traceback, down to the line that raised, is on stderr
+    stderr = capsys.readouterr().err
+    assert "serasac/Pendulum-v1_1) failed:" in stderr and "Traceback" in stderr and "train_one" in stderr
     assert not (tmp_path / "serasac" / "Pendulum-v1_1").exists()
     assert (tmp_path / "sac" / "Pendulum-v1_1" / "result.json").exists()
 
