@@ -133,6 +133,19 @@ class AdamPlan:
         return states
 
 
+def scalar_dtype(device: th.device) -> th.dtype:
+    """
+    The dtype of the scalars of a compiled step's Adam update (learning rates, bias corrections): float64, as torch's
+    ``Adam`` computes them in Python floats on the CPU (float32 on MPS, which has no float64).
+    """
+    return th.float32 if device.type == "mps" else th.float64
+
+
+def learning_rates_tensor(rates: Sequence[float], device: th.device) -> th.Tensor:
+    """Learning rates for a compiled step, in :func:`scalar_dtype`: the values torch's ``Adam`` steps with."""
+    return th.tensor(list(rates), dtype=scalar_dtype(device), device=device)
+
+
 def masked_adam(
     plan: AdamPlan,
     grads: Sequence[th.Tensor],
@@ -141,31 +154,39 @@ def masked_adam(
     apply: th.Tensor,
 ) -> None:
     """
-    One Adam step of ``plan``'s parameters (torch's update, its ``step`` counted in ``state``), committed only where
-    ``apply`` is true: otherwise parameters and state keep their values. Runs inside a compiled graph.
+    One Adam step of ``plan``'s parameters, committed only where ``apply`` is true: otherwise parameters and state
+    keep their values. Runs inside a compiled graph.
+
+    The arithmetic is that of torch's ``Adam`` on the CPU, operation for operation: the bias corrections and the step
+    size in float64 (torch computes them in Python floats), the moments by ``lerp`` and ``mul``/``addcmul``, and the
+    update as ``param - step_size * exp_avg / denom``. Run eagerly it gives torch's single-tensor ``Adam`` bit for
+    bit; computed in float32, the bias corrections alone made the compiled path drift from the eager one
+    (``benchmarks/compiled_vs_eager.py``).
 
     :param grads: the gradient of each parameter, in ``plan.params`` order
     :param state: ``plan.state()``
-    :param learning_rates: each parameter group's learning rate, a scalar tensor
+    :param learning_rates: each parameter group's learning rate, a scalar tensor (:func:`learning_rates_tensor`)
     :param apply: a boolean scalar tensor
     """
     with th.no_grad():
         for param, grad, group, (step, exp_avg, exp_avg_sq) in zip(plan.params, grads, plan.group_of, state, strict=True):
             beta1, beta2, eps, weight_decay, decoupled = plan.settings[group]
-            lr = learning_rates[group]
+            dtype = scalar_dtype(param.device)
+            lr = learning_rates[group].to(dtype)
             new_param = param
             if weight_decay != 0:
                 if decoupled:
-                    new_param = param * (1 - lr * weight_decay)
+                    new_param = param * (1 - lr * weight_decay).to(param.dtype)
                 else:
-                    grad = grad + weight_decay * param
+                    grad = grad.add(param, alpha=weight_decay)
             new_step = step + 1
             new_exp_avg = exp_avg.lerp(grad, 1 - beta1)
-            new_exp_avg_sq = exp_avg_sq * beta2 + (1 - beta2) * grad * grad
-            bias_correction1 = 1 - th.pow(beta1, new_step)
-            bias_correction2 = 1 - th.pow(beta2, new_step)
-            denom = new_exp_avg_sq.sqrt() / bias_correction2.sqrt() + eps
-            new_param = new_param - (lr / bias_correction1) * new_exp_avg / denom
+            new_exp_avg_sq = exp_avg_sq.mul(beta2).addcmul(grad, grad, value=1 - beta2)
+            bias_correction1 = 1 - th.pow(beta1, new_step.to(dtype))
+            bias_correction2_sqrt = (1 - th.pow(beta2, new_step.to(dtype))).sqrt()
+            step_size = (lr / bias_correction1).to(param.dtype)
+            denom = new_exp_avg_sq.sqrt() / bias_correction2_sqrt.to(param.dtype) + eps
+            new_param = new_param - step_size * new_exp_avg / denom
             param.copy_(th.where(apply, new_param, param))
             exp_avg.copy_(th.where(apply, new_exp_avg, exp_avg))
             exp_avg_sq.copy_(th.where(apply, new_exp_avg_sq, exp_avg_sq))

@@ -31,6 +31,7 @@ from sb3_sera.common.compiled import (
     CompileMode,
     all_finite,
     compile_model_step,
+    learning_rates_tensor,
     masked_adam,
     masked_polyak,
     read_steps,
@@ -526,13 +527,13 @@ class SERASAC(NamedRuns, Capabilities, SAC):
     def _step_learning_rates(self) -> th.Tensor:
         """The compiled step's ``learning_rates``: the actor's, the entropy coefficient's (0 when fixed), the critics' cap."""
         entropy_rate = self.ent_coef_optimizer.param_groups[0]["lr"] if self.ent_coef_optimizer is not None else 0.0
-        return th.tensor(
+        return learning_rates_tensor(
             [
                 self.actor.optimizer.param_groups[0]["lr"],
                 entropy_rate,
                 self.critic_lr_schedule(self._current_progress_remaining),
             ],
-            device=self.device,
+            self.device,
         )
 
     def _gradient_step(

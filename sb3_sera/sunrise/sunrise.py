@@ -32,6 +32,7 @@ from sb3_sera.common.compiled import (
     CompileMode,
     all_finite,
     compile_model_step,
+    learning_rates_tensor,
     masked_adam,
     masked_polyak,
     read_steps,
@@ -444,7 +445,7 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
 
     def _step_learning_rates(self) -> th.Tensor:
         """The compiled step's ``learning_rates``: each Adam plan's current rate, in the plans' order."""
-        return th.tensor([plan.optimizer.param_groups[0]["lr"] for plan in self._adam_plans], device=self.device)
+        return learning_rates_tensor([plan.optimizer.param_groups[0]["lr"] for plan in self._adam_plans], self.device)
 
     def _train_compiled(self, gradient_steps: int, batch_size: int) -> None:
         """

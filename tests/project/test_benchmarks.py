@@ -34,6 +34,7 @@ TINY_TIMING = ["--blocks", "1", "--block-steps", "2", "--threads", "1"]
             ["--env", "Pendulum-v1", "--filled", "500", "--buffer-size", "2000", "--repeats", "1"],
             "replay_buffer.pkl",
         ),
+        ("compiled_vs_eager.py", ["--against", "eager-gathered", "--steps", "2", "--aggregations", "median"], "| median |"),
     ],
 )
 def test_benchmark_script_runs(script, args, expected):

@@ -1,0 +1,115 @@
+"""
+Compiled against eager: two SERASAC models, one with ``compile_update=True``, trained on the same fixed replay buffer
+(Pendulum-v1, 64 random transitions), the same batches and the same random draws, one gradient step per ``train()``
+call. Prints, per actor aggregation, the largest parameter difference after each of the chosen steps, and the first
+step at which it passes ``--bound`` with the parameter where it does.
+
+    OMP_NUM_THREADS=1 python benchmarks/compiled_vs_eager.py --steps 100
+    OMP_NUM_THREADS=1 python benchmarks/compiled_vs_eager.py --against eager-gathered   # no compilation
+
+``--against eager-gathered`` compares the eager path with itself, its actor value taken as the compiled step takes
+it (every critic with a graph, the selected one gathered); ``--against step-uncompiled`` with the compiled path's
+step function run eagerly (its masked Adam and target update, no ``torch.compile``).
+"""
+
+import argparse
+from collections.abc import Callable
+from typing import Any
+from unittest import mock
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+from stable_baselines3.common.logger import configure
+
+from sb3_sera import SERASAC
+from sb3_sera.common import compiled
+
+BATCH_SIZE, FILL = 32, 64
+
+
+def make_model(compile_update: bool, seed: int = 0, **kwargs: Any) -> SERASAC:
+    """A SERASAC model on Pendulum-v1 with a replay buffer of ``FILL`` seeded random transitions."""
+    model = SERASAC(
+        "MlpPolicy", gym.make("Pendulum-v1"), batch_size=BATCH_SIZE, seed=seed, compile_update=compile_update, **kwargs
+    )
+    model.set_logger(configure(folder=None, format_strings=[]))
+    env = gym.make("Pendulum-v1")
+    obs, _ = env.reset(seed=seed)
+    env.action_space.seed(seed)
+    for _ in range(FILL):
+        action = env.action_space.sample()
+        next_obs, reward, terminated, _, info = env.step(action)
+        model.replay_buffer.add(obs[None], next_obs[None], action[None], np.array([reward]), np.array([terminated]), [info])
+        obs = next_obs
+    return model
+
+
+def parameters(model: SERASAC) -> dict[str, th.Tensor]:
+    """Every trained tensor of the model: the policy's (actor, critics, target critics) and the entropy coefficient."""
+    tensors = {name: value.detach().clone() for name, value in model.policy.state_dict().items()}
+    tensors["log_ent_coef"] = model.log_ent_coef.detach().clone()
+    return tensors
+
+
+def largest_difference(first: SERASAC, second: SERASAC) -> tuple[float, str]:
+    """The largest absolute difference between the two models' tensors, and the tensor where it is."""
+    a, b = parameters(first), parameters(second)
+    differences = {name: (a[name].float() - b[name].float()).abs().max().item() for name in a}
+    name = max(differences, key=lambda key: differences[key])
+    return differences[name], name
+
+
+def train_in_step(models: list[SERASAC], steps: int, on_step: Callable[[int], None]) -> None:
+    """One gradient step per ``train()`` call for each model, on the same batch and random draws."""
+    for step in range(1, steps + 1):
+        numpy_state, torch_state = np.random.get_state(), th.get_rng_state()
+        for model in models:
+            np.random.set_state(numpy_state)
+            th.set_rng_state(torch_state)
+            model.train(gradient_steps=1, batch_size=BATCH_SIZE)
+        on_step(step)
+
+
+def compare(aggregation: str, against: str, steps: int, bound: float, report: list[int]) -> None:
+    eager = make_model(False, actor_aggregation=aggregation)
+    if against == "step-uncompiled":
+        with mock.patch.object(compiled, "compile_step", lambda step, mode: step):
+            other = make_model(True, actor_aggregation=aggregation)
+    else:
+        other = make_model(against == "compiled", actor_aggregation=aggregation)
+    if against == "eager-gathered":
+        other._actor_q_value = other._actor_q_value_gathered  # type: ignore[method-assign]
+    first_over: list[tuple[int, float, str]] = []
+    row: list[str] = []
+
+    def on_step(step: int) -> None:
+        difference, name = largest_difference(eager, other)
+        if difference > bound and not first_over:
+            first_over.append((step, difference, name))
+        if step in report:
+            row.append(f"{difference:.1e}")
+
+    train_in_step([eager, other], steps, on_step)
+    passed = "never" if not first_over else f"step {first_over[0][0]} ({first_over[0][1]:.1e}, {first_over[0][2]})"
+    print(f"| {aggregation} | {' | '.join(row)} | {passed} |", flush=True)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--steps", type=int, default=100)
+    parser.add_argument("--against", choices=("compiled", "eager-gathered", "step-uncompiled"), default="compiled")
+    parser.add_argument("--aggregations", nargs="+", default=["median", "mean", "min"])
+    parser.add_argument("--bound", type=float, default=2e-5)
+    args = parser.parse_args()
+    th.set_num_threads(1)
+    report = [step for step in (1, 12, 16, 24, 40, 100, 200) if step <= args.steps]
+    print(f"eager against {args.against}: largest parameter difference after step ...")
+    print(f"| actor aggregation | {' | '.join(str(step) for step in report)} | first above {args.bound:g} |")
+    print(f"|---|{'---|' * len(report)}---|")
+    for aggregation in args.aggregations:
+        compare(aggregation, args.against, args.steps, args.bound, report)
+
+
+if __name__ == "__main__":
+    main()
