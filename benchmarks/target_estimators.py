@@ -51,6 +51,7 @@ import matplotlib.pyplot as plt
 import torch as th
 
 from sb3_sera.sera.aggregation import (
+    SERAOptions,
     TargetAggregation,
     TemperatureMode,
     aggregate_target,
@@ -229,14 +230,8 @@ def aggregate(
     :param temperature: SERA's softmax temperature
     :return: the targets, shape ``(n_draws,)``
     """
-    return aggregate_target(
-        q_values,
-        estimator.mode,
-        alpha=alpha,
-        temperature=temperature,
-        include_median=estimator.include_median,
-        temperature_mode=estimator.temperature_mode,
-    )
+    options = SERAOptions(alpha, temperature, estimator.include_median, estimator.temperature_mode)
+    return aggregate_target(q_values, estimator.mode, options)
 
 
 def moments(values: th.Tensor, true_value: float = 0.0) -> Moments:

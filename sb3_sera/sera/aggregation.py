@@ -6,21 +6,39 @@ unit-tested on hand-computed numbers; SERASAC calls them on single-agent and CTD
 critic diagnostics call the correlation helpers.
 """
 
-from typing import Literal, NamedTuple
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Literal, NamedTuple, get_args
 
 import torch as th
 
+#: The names of :data:`TARGET_RULES` (a new rule adds its name here and its function there)
 TargetAggregation = Literal["sera", "mean", "median", "min"]
+#: The names of :data:`ACTOR_RULES`
 ActorAggregation = Literal["median", "mean", "min"]
 TemperatureMode = Literal["absolute", "relative"]
-
-TARGET_AGGREGATIONS: tuple[str, ...] = ("sera", "mean", "median", "min")
-ACTOR_AGGREGATIONS: tuple[str, ...] = ("median", "mean", "min")
-TEMPERATURE_MODES: tuple[str, ...] = ("absolute", "relative")
+TEMPERATURE_MODES: tuple[TemperatureMode, ...] = get_args(TemperatureMode)
 
 # Added to the mean deviation in "relative" temperature mode, so that an ensemble in full agreement
 # does not divide by zero.
 RELATIVE_TEMPERATURE_EPS = 1e-8
+
+
+@dataclass(frozen=True)
+class SERAOptions:
+    """
+    The settings of the SERA target (:func:`sera_aggregate`): SERASAC's ``sera_alpha``, ``sera_temperature``,
+    ``sera_include_median`` and ``sera_temperature_mode``.
+    """
+
+    #: Weight of the median anchor, in ``[0, 1]``
+    alpha: float = 0.5
+    #: Softmax temperature ``tau > 0``
+    temperature: float = 1.0
+    #: The *SERA-Median* ablation: the median critic also enters the softmax
+    include_median: bool = False
+    #: ``"absolute"`` or ``"relative"`` (see :func:`sera_aggregate`)
+    temperature_mode: TemperatureMode = "absolute"
 
 
 class SERAAggregate(NamedTuple):
@@ -91,52 +109,61 @@ def sera_aggregate(
     return SERAAggregate(value, q_med, median_index, weights)
 
 
-def aggregate_target(
-    q_values: th.Tensor,
-    mode: TargetAggregation = "sera",
-    alpha: float = 0.5,
-    temperature: float = 1.0,
-    include_median: bool = False,
-    temperature_mode: TemperatureMode = "absolute",
-) -> th.Tensor:
+def _sera_target(q_values: th.Tensor, options: SERAOptions) -> th.Tensor:
+    return sera_aggregate(q_values, options.alpha, options.temperature, options.include_median, options.temperature_mode).value
+
+
+#: The target aggregation rules: each reduces the target critics' values ``(batch_size, n_critics)`` to one target per
+#: sample, ``(batch_size,)``. ``"sera"``: :func:`sera_aggregate` with the given :class:`SERAOptions`; ``"mean"``: the
+#: paper's *Ensemble Mean*; ``"median"``; ``"min"``: clipped double Q over all critics.
+TARGET_RULES: dict[TargetAggregation, Callable[[th.Tensor, SERAOptions], th.Tensor]] = {
+    "sera": _sera_target,
+    "mean": lambda q_values, _: q_values.mean(dim=1),
+    "median": lambda q_values, _: median_anchor(q_values)[0],
+    "min": lambda q_values, _: q_values.min(dim=1).values,
+}
+#: The actor aggregation rules: each picks, per sample, the critic whose value at the actor's action the actor
+#: maximizes, ``(batch_size,)`` indices: the median (the paper's Algorithm 2, line 24) or the min; ``"mean"`` picks
+#: none (None: the actor maximizes the critics' mean).
+ACTOR_RULES: dict[ActorAggregation, Callable[[th.Tensor], th.Tensor] | None] = {
+    "median": lambda q_values: median_anchor(q_values)[1],
+    "mean": None,
+    "min": lambda q_values: q_values.argmin(dim=1),
+}
+TARGET_AGGREGATIONS: tuple[TargetAggregation, ...] = tuple(TARGET_RULES)
+ACTOR_AGGREGATIONS: tuple[ActorAggregation, ...] = tuple(ACTOR_RULES)
+for _rules, _names in ((TARGET_RULES, TargetAggregation), (ACTOR_RULES, ActorAggregation)):
+    if set(_rules) != set(get_args(_names)):
+        raise TypeError(f"The aggregation rules {sorted(_rules)} and their names {sorted(get_args(_names))} differ")
+
+
+def aggregate_target(q_values: th.Tensor, mode: TargetAggregation = "sera", options: SERAOptions = SERAOptions()) -> th.Tensor:
     """
-    Reduce target critic values to one target value per sample.
+    Reduce target critic values to one target value per sample by the rule ``mode`` of :data:`TARGET_RULES`.
 
     :param q_values: target critic values, shape ``(batch_size, n_critics)``
-    :param mode: ``"sera"`` (:func:`sera_aggregate`), ``"mean"`` (the paper's *Ensemble Mean*),
-        ``"median"`` or ``"min"`` (clipped double Q over all critics)
-    :param alpha: see :func:`sera_aggregate` (``"sera"`` only)
-    :param temperature: see :func:`sera_aggregate` (``"sera"`` only)
-    :param include_median: see :func:`sera_aggregate` (``"sera"`` only)
-    :param temperature_mode: see :func:`sera_aggregate` (``"sera"`` only)
+    :param mode: a name of :data:`TARGET_AGGREGATIONS`
+    :param options: the SERA target's settings (``"sera"`` only)
     :return: the aggregated values, shape ``(batch_size,)``
     """
-    if mode == "sera":
-        return sera_aggregate(q_values, alpha, temperature, include_median, temperature_mode).value
-    if mode == "mean":
-        return q_values.mean(dim=1)
-    if mode == "median":
-        return median_anchor(q_values)[0]
-    if mode == "min":
-        return q_values.min(dim=1).values
-    raise ValueError(f"Unknown target aggregation {mode!r}, expected one of {TARGET_AGGREGATIONS}")
+    if mode not in TARGET_RULES:
+        raise ValueError(f"Unknown target aggregation {mode!r}, expected one of {TARGET_AGGREGATIONS}")
+    return TARGET_RULES[mode](q_values, options)
 
 
 def selected_critic(q_values: th.Tensor, mode: ActorAggregation) -> th.Tensor | None:
     """
-    For the actor aggregations that pick one critic per sample, the index of that critic: the actor's value is
-    ``q.gather(1, index)``, the median (the paper's Algorithm 2, line 24) or the min; ``"mean"`` picks none (the
-    actor then maximizes the critics' mean).
+    The critic per sample whose value the actor maximizes, by the rule ``mode`` of :data:`ACTOR_RULES`: the actor's
+    value is ``q.gather(1, index)``; None for ``"mean"`` (the actor then maximizes the critics' mean).
 
     :param q_values: critic values, shape ``(batch_size, n_critics)``
-    :param mode: the actor aggregation
+    :param mode: a name of :data:`ACTOR_AGGREGATIONS`
     :return: the critic index per sample, shape ``(batch_size,)``, or ``None`` for ``"mean"``
     """
-    if mode == "median":
-        return median_anchor(q_values)[1]
-    if mode == "min":
-        return q_values.argmin(dim=1)
-    return None
+    if mode not in ACTOR_RULES:
+        raise ValueError(f"Unknown actor aggregation {mode!r}, expected one of {ACTOR_AGGREGATIONS}")
+    rule = ACTOR_RULES[mode]
+    return None if rule is None else rule(q_values)
 
 
 def ensemble_disagreement(q_values: th.Tensor) -> th.Tensor:

@@ -45,6 +45,7 @@ from sb3_sera.sera.aggregation import (
     TARGET_AGGREGATIONS,
     TEMPERATURE_MODES,
     ActorAggregation,
+    SERAOptions,
     TargetAggregation,
     TemperatureMode,
     aggregate_target,
@@ -350,6 +351,10 @@ class SERASAC(NamedRuns, Capabilities, SAC):
     def _setup_model(self) -> None:
         fill_agent_layout(self)
         super()._setup_model()
+        #: The SERA target's settings as one object (built from the ``sera_*`` attributes, which are saved)
+        self.sera_options = SERAOptions(
+            self.sera_alpha, self.sera_temperature, self.sera_include_median, self.sera_temperature_mode
+        )
         self.critic_lr_schedule = FloatSchedule(
             self.learning_rate if self.critic_learning_rate is None else self.critic_learning_rate
         )
@@ -411,14 +416,7 @@ class SERASAC(NamedRuns, Capabilities, SAC):
             next_log_prob = next_log_prob.reshape(-1, 1)
             # Target critics' values q_i(s', a'), shape (S, K), aggregated to one target per sample
             next_q_values = self.critic_target.q_values(replay_data.next_observations, next_actions)
-            next_q_aggregate = aggregate_target(
-                next_q_values,
-                self.target_aggregation,
-                alpha=self.sera_alpha,
-                temperature=self.sera_temperature,
-                include_median=self.sera_include_median,
-                temperature_mode=self.sera_temperature_mode,
-            ).unsqueeze(1)
+            next_q_aggregate = aggregate_target(next_q_values, self.target_aggregation, self.sera_options).unsqueeze(1)
             next_q = next_q_aggregate - ent_coef * next_log_prob
             target_q_values = replay_data.rewards + (1 - replay_data.dones) * discounts * next_q
         # Each online critic regresses on the same target: delta_i = y - Q_i(s, a), shape (S, K)
@@ -750,6 +748,7 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         return [
             *super()._excluded_save_params(),
             "step_size",
+            "sera_options",
             "critic_lr_schedule",
             "critic_lr_max_schedule",
             "_actor_parameters",

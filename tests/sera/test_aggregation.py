@@ -2,11 +2,17 @@
 
 import itertools
 import math
+from typing import get_args
 
 import pytest
 import torch as th
 
 from sb3_sera.sera.aggregation import (
+    ACTOR_AGGREGATIONS,
+    TARGET_AGGREGATIONS,
+    ActorAggregation,
+    SERAOptions,
+    TargetAggregation,
     aggregate_target,
     correlation_matrix,
     critic_correlation,
@@ -133,9 +139,20 @@ def test_target_aggregation_modes():
     assert aggregate_target(q, "mean").tolist() == pytest.approx([7 / 3, 2 / 3])
     assert aggregate_target(q, "median").tolist() == [2.0, 0.0]
     assert aggregate_target(q, "min").tolist() == [1.0, -1.0]
-    assert aggregate_target(q, "sera", alpha=0.5, temperature=1.0)[0].item() == pytest.approx(1.9034121, abs=1e-6)
+    options = SERAOptions(alpha=0.5, temperature=1.0)
+    assert aggregate_target(q, "sera", options)[0].item() == pytest.approx(1.9034121, abs=1e-6)
+    # The options reach the rule: alpha = 1 is the median anchor alone
+    assert aggregate_target(q, "sera", SERAOptions(alpha=1.0)).tolist() == [2.0, 0.0]
     with pytest.raises(ValueError, match="max"):
         aggregate_target(q, "max")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="actor aggregation 'max'"):
+        selected_critic(q, "max")  # type: ignore[arg-type]
+
+
+def test_the_rule_tables_name_every_rule():
+    # The names users pass, the Literal types and the dispatch come from one table per kind of rule
+    assert TARGET_AGGREGATIONS == ("sera", "mean", "median", "min") == get_args(TargetAggregation)
+    assert ACTOR_AGGREGATIONS == ("median", "mean", "min") == get_args(ActorAggregation)
 
 
 def test_selected_critic_by_hand():
