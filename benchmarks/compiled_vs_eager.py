@@ -24,6 +24,8 @@ from stable_baselines3.common.logger import configure
 
 from sb3_sera import SERASAC
 from sb3_sera.common import compiled
+from sb3_sera.sera import sera as sera_module
+from sb3_sera.sera.update import actor_value_gathered
 
 BATCH_SIZE, FILL = 32, 64
 
@@ -71,6 +73,16 @@ def train_in_step(models: list[SERASAC], steps: int, on_step: Callable[[int], No
         on_step(step)
 
 
+def gathered(train: Callable[..., None]) -> Callable[..., None]:
+    """``train`` with the eager actor value taken as the compiled step takes it (:func:`actor_value_gathered`)."""
+
+    def run(*args: Any, **kwargs: Any) -> None:
+        with mock.patch.object(sera_module, "actor_value", actor_value_gathered):
+            train(*args, **kwargs)
+
+    return run
+
+
 def compare(aggregation: str, against: str, steps: int, bound: float, report: list[int]) -> None:
     eager = make_model(False, actor_aggregation=aggregation)
     if against == "step-uncompiled":
@@ -79,7 +91,7 @@ def compare(aggregation: str, against: str, steps: int, bound: float, report: li
     else:
         other = make_model(against == "compiled", actor_aggregation=aggregation)
     if against == "eager-gathered":
-        other._actor_q_value = other._actor_q_value_gathered  # type: ignore[method-assign]
+        other.train = gathered(other.train)  # type: ignore[method-assign]
     first_over: list[tuple[int, float, str]] = []
     row: list[str] = []
 

@@ -20,6 +20,7 @@ SERASAC's (the wall-time cost of SERASAC per gradient step, in units of SAC's).
 """
 
 import argparse
+from functools import partial
 from typing import Any
 
 import torch as th
@@ -30,6 +31,7 @@ from timing import interleaved_rates, median_iqr
 from sb3_sera import SERASAC
 from sb3_sera.common.compiled import CompileMode, count_graph_breaks
 from sb3_sera.common.mujoco_log import route_mujoco_warnings
+from sb3_sera.sera.compiled_step import gradient_step
 
 
 def _build(
@@ -94,7 +96,7 @@ def main() -> None:
         compiled = models["SERASAC+compile"]
         assert isinstance(compiled, SERASAC) and compiled.replay_buffer is not None
         batch = compiled.replay_buffer.sample(args.batch_size)
-        graphs, breaks = count_graph_breaks(compiled, compiled._gradient_step, batch)
+        graphs, breaks = count_graph_breaks(compiled, partial(gradient_step, compiled), batch)
         print(f"compiled SERASAC step (compile_update={compile_mode!r}): {graphs} graph(s), {breaks} graph break(s)")
 
 

@@ -16,15 +16,8 @@ from stable_baselines3.common.utils import polyak_update
 from sb3_sera.ace.policies import ACEPolicy, MlpPolicy
 from sb3_sera.common.arguments import check_gymnasium_env, checks_keywords
 from sb3_sera.common.capabilities import Capabilities
-from sb3_sera.common.checks import (
-    check_choice,
-    check_finite,
-    check_hyperparameters,
-    check_range,
-    check_replay_batch,
-    gradient_step_context,
-    with_env_step_check,
-)
+from sb3_sera.common.finite import check_finite, check_replay_batch, gradient_step_context, with_env_step_check
+from sb3_sera.common.hyperparameters import check_choice, check_hyperparameters, check_range
 from sb3_sera.common.naming import NamedRuns
 
 

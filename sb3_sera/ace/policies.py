@@ -10,7 +10,7 @@ from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
 from sb3_sera.ace.tree import best_actions, head_values, state_value, tree_value
-from sb3_sera.common.checks import check_int, check_range
+from sb3_sera.common.hyperparameters import check_int, check_range
 
 #: Clip of the normalized observations (the authors' normalizer)
 OBS_CLIP = 10.0

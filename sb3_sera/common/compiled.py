@@ -15,7 +15,7 @@ from typing import Any, Literal, Protocol, TypeVar
 import torch as th
 from torch.utils import _pytree
 
-from sb3_sera.common.checks import NON_FINITE_ADVICE
+from sb3_sera.common.finite import NON_FINITE_ADVICE
 from sb3_sera.common.off_policy import target_update_due
 
 #: ``compile_update``'s values: off, on (one graph per gradient step), or on with CUDA graphs (a GPU is needed)

@@ -19,7 +19,8 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
 
 from sb3_sera.common.arguments import check_keywords
 from sb3_sera.common.capabilities import Capabilities
-from sb3_sera.common.checks import FiniteUpdates, check_hyperparameters, check_rollout_buffer, with_env_step_check
+from sb3_sera.common.finite import FiniteUpdates, check_rollout_buffer, with_env_step_check
+from sb3_sera.common.hyperparameters import check_hyperparameters
 from sb3_sera.ctde.policies import MAPPOPolicy, MASACPolicy, MATD3Policy, fill_agent_layout, make_env_for_policy
 
 
@@ -42,7 +43,7 @@ class _CTDEAlgorithm(Capabilities, BaseAlgorithm):
     An unknown keyword raises ``TypeError`` naming it, its close matches (or the ``policy_kwargs`` a policy argument
     belongs in) and the algorithm's keywords (:func:`~sb3_sera.common.arguments.check_keywords`); a PettingZoo env,
     ``TypeError`` saying to wrap it in :class:`~sb3_sera.ctde.env.CTDEEnv`. Hyperparameters outside their range raise
-    ``ValueError`` at construction (:func:`~sb3_sera.common.checks.check_hyperparameters`). Non-finite values stop
+    ``ValueError`` at construction (:func:`~sb3_sera.common.hyperparameters.check_hyperparameters`). Non-finite values stop
     training with a ``FloatingPointError`` that names them, before they change a parameter: a reward or observation when
     the env gives it, a replayed batch at the start of each gradient step (off-policy), the rollout before the update
     (on-policy), and each loss's gradient before its optimizer steps (SB3's training loop is SB3's own, unchanged: it

@@ -19,7 +19,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper, unwrap_vec_normalize
 
-from sb3_sera.common.checks import check_int
+from sb3_sera.common.hyperparameters import check_int
 from sb3_sera.common.naming import NamedRuns
 from sb3_sera.ctde.algorithms import MASAC
 from sb3_sera.ctde.policies import agent_action_dims_of

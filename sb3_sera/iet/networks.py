@@ -21,7 +21,7 @@ from stable_baselines3.common.torch_layers import create_mlp
 from torch import nn
 from torch.nn import functional as F
 
-from sb3_sera.common.checks import check_int
+from sb3_sera.common.hyperparameters import check_int
 from sb3_sera.common.layers import BatchedLinear
 
 

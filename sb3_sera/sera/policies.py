@@ -19,7 +19,7 @@ from stable_baselines3.sac.policies import Actor as SACActor
 from stable_baselines3.sac.policies import SACPolicy
 from torch import nn
 
-from sb3_sera.common.checks import check_int
+from sb3_sera.common.hyperparameters import check_int
 from sb3_sera.ctde.policies import CTDEPolicyMixin
 
 #: Hidden layers of the paper's heterogeneous critics (Table 4); critic ``i`` uses ``CRITIC_ARCHS[i % 5]``.

@@ -3,7 +3,7 @@
 import warnings
 from collections.abc import Callable
 from functools import partial
-from typing import Any, ClassVar, NamedTuple
+from typing import Any, ClassVar
 
 import torch as th
 from stable_baselines3.common.buffers import ReplayBuffer
@@ -16,30 +16,19 @@ from stable_baselines3.sac import SAC
 
 from sb3_sera.common.arguments import checks_keywords
 from sb3_sera.common.capabilities import Capabilities
-from sb3_sera.common.checks import (
+from sb3_sera.common.compiled import COMPILE_MODES, CompileMode, compile_model_step, learning_rates_tensor
+from sb3_sera.common.finite import check_finite, gradient_step_context, with_env_step_check
+from sb3_sera.common.hyperparameters import (
     check_choice,
     check_ent_coef,
-    check_finite,
     check_int,
     check_off_policy_hyperparameters,
     check_range,
-    gradient_step_context,
-    with_env_step_check,
-)
-from sb3_sera.common.compiled import (
-    COMPILE_MODES,
-    CompileMode,
-    all_finite,
-    compile_model_step,
-    learning_rates_tensor,
-    masked_adam,
-    masked_polyak,
-    read_steps,
-    run_steps,
 )
 from sb3_sera.common.naming import NamedRuns
 from sb3_sera.common.off_policy import record_means, start_train, target_update_due
 from sb3_sera.ctde.policies import fill_agent_layout, make_env_for_policy
+from sb3_sera.sera import compiled_step
 from sb3_sera.sera.aggregation import (
     ACTOR_AGGREGATIONS,
     TARGET_AGGREGATIONS,
@@ -48,81 +37,22 @@ from sb3_sera.sera.aggregation import (
     SERAOptions,
     TargetAggregation,
     TemperatureMode,
-    aggregate_target,
-    critic_correlation,
-    ensemble_disagreement,
-    median_anchor,
-    selected_critic,
-    td_error_correlation,
 )
 from sb3_sera.sera.policies import CnnPolicy, HeterogeneousCritics, MlpPolicy, MultiInputPolicy, SERACTDEPolicy, SERAPolicy
-from sb3_sera.sera.step_size import StepSizeUpdate, VarianceAdaptiveStepSize, batch_variance
+from sb3_sera.sera.step_size import StepSizeUpdate, VarianceAdaptiveStepSize
+from sb3_sera.sera.update import (
+    DIAGNOSTICS,
+    CriticUpdate,
+    actor_value,
+    critic_update,
+    diagnostics,
+    entropy_target,
+)
 
 #: Learning rate of the actor and the entropy coefficient, as SB3's SAC
 DEFAULT_LEARNING_RATE = 3e-4
 #: Critic learning rate at full gain ``kappa = 1`` (paper appendix B.1.4)
 DEFAULT_CRITIC_LR_MAX = 5e-4
-
-
-class CriticUpdate(NamedTuple):
-    """What one critic update computed (shapes for a batch of ``S`` samples and ``K`` critics)."""
-
-    #: Target critics' values at the next state and action, ``(S, K)``
-    next_q_values: th.Tensor
-    #: Their aggregate, ``(S, 1)``
-    next_q_aggregate: th.Tensor
-    #: TD target ``y``, ``(S, 1)``
-    target_q_values: th.Tensor
-    #: Online critics' values at the replayed state and action, ``(S, K)``, with their graph
-    current_q_values: th.Tensor
-    #: Sum over critics of half the mean squared TD error
-    critic_loss: th.Tensor
-    #: Step-size statistics and rates, not yet committed
-    step_size: StepSizeUpdate
-
-
-#: The SERA diagnostics logged after each ``train()`` call (SPEC section 1), as ``train/<name>``
-DIAGNOSTICS = (
-    "td_target_var",
-    "critic_disagreement",
-    "target_entropy_eff",
-    "q_sera_mean",
-    "q_median_mean",
-    "critic_corr",
-    "td_error_corr",
-)
-#: What a compiled gradient step checks, in the order in which a cause precedes its consequences
-COMPILED_QUANTITIES = (
-    "entropy coefficient",
-    "TD target",
-    "critic loss",
-    "entropy coefficient loss",
-    "critic step size",
-    "critic gradients",
-    "entropy coefficient gradient",
-    "actor loss",
-    "actor gradients",
-)
-
-
-class CompiledStepOutput(NamedTuple):
-    """
-    What one compiled gradient step gives back (:class:`~sb3_sera.common.compiled.StepOutput`): tensors only, nothing
-    read from the device during the step.
-    """
-
-    #: Whether this step and every earlier one of the ``train()`` call had only finite values (their updates applied)
-    healthy: th.Tensor
-    #: One flag per quantity of :data:`COMPILED_QUANTITIES`: whether it was finite
-    finite: th.Tensor
-    #: The step's entropy coefficient, critic loss, actor loss and, when it is learned, entropy coefficient loss
-    logged: th.Tensor
-    #: Each critic's learning rate after the step, ``(K,)``
-    critic_rates: th.Tensor
-    #: The critic update, detached (the last step's feeds the diagnostics)
-    critic: CriticUpdate
-    #: The entropy target of the step (``(S, 1)`` with a disagreement adjustment)
-    target_entropy: th.Tensor
 
 
 class SERASAC(NamedRuns, Capabilities, SAC):
@@ -372,9 +302,11 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         self._actor_parameters: list[th.Tensor] = list(self.actor.parameters())
         self._critic_parameters: list[th.Tensor] = list(self.critic.parameters())
         self._critic_target_parameters: list[th.Tensor] = list(self.critic_target.parameters())
-        self._compiled_step: Callable[..., CompiledStepOutput] | None = None
+        self._compiled_step: Callable[..., compiled_step.CompiledStepOutput] | None = None
         if self.compile_update:
-            self._adam_plans, self._compiled_step = compile_model_step(self, self._gradient_step, self.compile_update)
+            self._adam_plans, self._compiled_step = compile_model_step(
+                self, partial(compiled_step.gradient_step, self), self.compile_update
+            )
 
     def _update_critic_learning_rates(self, rates: list[float] | None) -> list[float]:
         """
@@ -403,37 +335,6 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         # Non-finite rewards and observations are refused at the env step that gives them
         return super()._init_callback(with_env_step_check(callback), progress_bar)
 
-    def _critic_step_values(self, replay_data: ReplayBufferSamples, ent_coef: th.Tensor) -> CriticUpdate:
-        """
-        The critic update on a batch (Algorithm 2, lines 5-16), computed, nothing changed yet: TD target from the
-        aggregated target critics at next actions drawn from the current actor, the online critics' values and loss,
-        and the step-size update (not yet committed).
-        """
-        # For n-step replay, the discount factor is gamma**n_steps (when no early termination)
-        discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
-        with th.no_grad():
-            next_actions, next_log_prob = self.actor.action_log_prob(replay_data.next_observations)
-            next_log_prob = next_log_prob.reshape(-1, 1)
-            # Target critics' values q_i(s', a'), shape (S, K), aggregated to one target per sample
-            next_q_values = self.critic_target.q_values(replay_data.next_observations, next_actions)
-            next_q_aggregate = aggregate_target(next_q_values, self.target_aggregation, self.sera_options).unsqueeze(1)
-            next_q = next_q_aggregate - ent_coef * next_log_prob
-            target_q_values = replay_data.rewards + (1 - replay_data.dones) * discounts * next_q
-        # Each online critic regresses on the same target: delta_i = y - Q_i(s, a), shape (S, K)
-        current_q_values = self.critic.q_values(replay_data.observations, replay_data.actions)
-        td_errors = target_q_values - current_q_values
-        critic_loss = 0.5 * td_errors.pow(2).mean(dim=0).sum()
-        # Variance-adaptive step size from detached tensors (stored by the caller once checked)
-        update = self.step_size.compute(td_errors.detach(), next_q_values - next_q_aggregate)
-        return CriticUpdate(
-            next_q_values=next_q_values,
-            next_q_aggregate=next_q_aggregate,
-            target_q_values=target_q_values,
-            current_q_values=current_q_values,
-            critic_loss=critic_loss,
-            step_size=update,
-        )
-
     def td_targets(self, replay_data: ReplayBufferSamples) -> tuple[th.Tensor, th.Tensor]:
         """
         The TD target ``y`` the critics regress on for a replayed batch (the aggregate of the target critics at next
@@ -441,7 +342,7 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         nothing (the step-size statistics are computed, not committed); draws the next actions from torch's generator.
         """
         with th.no_grad():
-            update = self._critic_step_values(replay_data, self._entropy_coefficient())
+            update = self._critic_update(replay_data, self._entropy_coefficient())
         return update.target_q_values, update.current_q_values
 
     def critic_learning_rates(self) -> list[float]:
@@ -462,7 +363,7 @@ class SERASAC(NamedRuns, Capabilities, SAC):
             self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
             return
         if self._compiled_step is not None:
-            self._train_compiled(gradient_steps, batch_size)
+            compiled_step.train_compiled(self, gradient_steps, batch_size)
             return
         logged: dict[str, list[th.Tensor]] = {"ent_coef": [], "actor_loss": [], "critic_loss": []}
         for gradient_step in range(gradient_steps):
@@ -473,7 +374,7 @@ class SERASAC(NamedRuns, Capabilities, SAC):
             actions_pi, log_prob = self.actor.action_log_prob(replay_data.observations)
             log_prob = log_prob.reshape(-1, 1)
             ent_coef = self._entropy_coefficient()
-            critic = self._critic_step_values(replay_data, ent_coef)
+            critic = self._critic_update(replay_data, ent_coef)
             target_entropy, ent_coef_loss = self._entropy_target(critic.current_q_values, log_prob)
             self._check_step(gradient_step, ent_coef, critic, ent_coef_loss)
             critic_rates = self._step_size_step(critic.step_size, critic_rates)
@@ -482,11 +383,14 @@ class SERASAC(NamedRuns, Capabilities, SAC):
             self._critic_step(critic.critic_loss, logged)
             self._actor_step(gradient_step, replay_data.observations, actions_pi, log_prob, ent_coef, logged)
             self._target_step(gradient_step)
-        self._end_train(gradient_steps, self._diagnostics(critic, target_entropy).tolist(), critic_rates)
+        self._end_train(gradient_steps, diagnostics(critic, target_entropy).tolist(), critic_rates)
         record_means(self.logger, logged)
 
     def _end_train(self, gradient_steps: int, diagnostics: list[float], critic_rates: list[float]) -> None:
-        """Count the updates, log the last step's diagnostics (:meth:`_diagnostics`' values) and the critics' rates."""
+        """
+        Count the updates, log the last step's diagnostics (:func:`~sb3_sera.sera.update.diagnostics`' values) and the
+        critics' rates.
+        """
         self._n_updates += gradient_steps
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         n_critics = self.critic.n_critics
@@ -499,29 +403,6 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         for index, rate in enumerate(critic_rates):
             self.logger.record(f"train/critic_lr_{index}", rate)
 
-    def _train_compiled(self, gradient_steps: int, batch_size: int) -> None:
-        """
-        :meth:`train`'s steps through the compiled :meth:`_gradient_step`: the same values, read from the device
-        once, after the last step. A non-finite value raises ``FloatingPointError`` naming the first one; its step
-        and those after it changed nothing.
-        """
-        sample = partial(self.replay_buffer.sample, batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
-        outputs: list[CompiledStepOutput] = run_steps(self, sample, self._step_learning_rates(), gradient_steps)
-        last = outputs[-1]
-        logged, values = read_steps(
-            outputs,
-            COMPILED_QUANTITIES,
-            partial(gradient_step_context, self),
-            th.cat([last.critic_rates, self._diagnostics(last.critic, last.target_entropy)]),
-        )
-        critic_rates, diagnostics = values[: self.critic.n_critics], values[self.critic.n_critics :]
-        if self.adaptive_critic_lr:
-            self._update_critic_learning_rates(critic_rates)
-        names = ["ent_coef", "critic_loss", "actor_loss", *(["ent_coef_loss"] if self.ent_coef_optimizer else [])]
-        for name, value in zip(names, logged, strict=True):
-            self.logger.record(f"train/{name}", value)
-        self._end_train(gradient_steps, diagnostics, critic_rates)
-
     def _step_learning_rates(self) -> th.Tensor:
         """The compiled step's ``learning_rates``: the actor's, the entropy coefficient's (0 when fixed), the critics' cap."""
         entropy_rate = self.ent_coef_optimizer.param_groups[0]["lr"] if self.ent_coef_optimizer is not None else 0.0
@@ -532,77 +413,6 @@ class SERASAC(NamedRuns, Capabilities, SAC):
                 self.critic_lr_schedule(self._current_progress_remaining),
             ],
             self.device,
-        )
-
-    def _gradient_step(
-        self,
-        replay_data: ReplayBufferSamples,
-        *,
-        learning_rates: th.Tensor,
-        target_update: th.Tensor,
-        healthy: th.Tensor,
-        states: list[list[tuple[th.Tensor, th.Tensor, th.Tensor]]],
-    ) -> CompiledStepOutput:
-        """
-        One gradient step of :meth:`train` as one graph (``compile_update``): the same computation in the same order,
-        with gradients from ``torch.autograd.grad``, Adam steps and the target update masked by ``healthy`` and by
-        whether this step's values were finite, the actor's critic value by gather, and no value read back.
-
-        :param learning_rates: the actor's, the entropy coefficient's and the critics' scheduled rates, ``(3,)``
-        :param target_update: whether the target critics are updated after this step, a boolean scalar tensor
-        :param healthy: whether every earlier step of the ``train()`` call had only finite values
-        :param states: each optimizer's Adam state (:meth:`AdamPlan.state`), in ``_adam_plans`` order
-        """
-        actor_plan, critic_plan = self._adam_plans[:2]
-        actions_pi, log_prob = self.actor.action_log_prob(replay_data.observations)
-        log_prob = log_prob.reshape(-1, 1)
-        ent_coef = self._entropy_coefficient()
-        critic = self._critic_step_values(replay_data, ent_coef)
-        target_entropy, ent_coef_loss = self._entropy_target(critic.current_q_values, log_prob)
-        critic_grads = th.autograd.grad(critic.critic_loss, critic_plan.params)
-        finite = [
-            th.isfinite(ent_coef).all(),
-            th.isfinite(critic.target_q_values).all(),
-            th.isfinite(critic.critic_loss),
-            th.isfinite(ent_coef_loss) if ent_coef_loss is not None else healthy,
-            th.isfinite(critic.step_size.learning_rates).all() if self.adaptive_critic_lr else healthy,
-            all_finite(critic_grads),
-        ]
-        entropy_grads: tuple[th.Tensor, ...] = ()
-        if ent_coef_loss is not None:
-            entropy_grads = th.autograd.grad(ent_coef_loss, self._adam_plans[2].params)
-        finite.append(all_finite(entropy_grads) if entropy_grads else healthy)
-        apply = healthy & th.stack(finite).all()
-        # Step size, entropy coefficient, critics: in train()'s order, each where every value so far was finite
-        self.step_size.commit(critic.step_size, apply)
-        scheduled = learning_rates[2]
-        critic_rates = critic.step_size.learning_rates if self.adaptive_critic_lr else scheduled.expand(self.critic.n_critics)
-        if ent_coef_loss is not None:
-            masked_adam(self._adam_plans[2], entropy_grads, states[2], [learning_rates[1]], apply)
-        group_rates = [
-            scheduled if group["critic_index"] is None else critic_rates[group["critic_index"]]
-            for group in self.critic.optimizer.param_groups
-        ]
-        masked_adam(critic_plan, critic_grads, states[1], group_rates, apply)
-        # The actor against the updated critics, the median critic's value by gather (static shapes)
-        actor_loss = (ent_coef * log_prob - self._actor_q_value_gathered(replay_data.observations, actions_pi)).mean()
-        actor_grads = th.autograd.grad(actor_loss, actor_plan.params)
-        finite += [th.isfinite(actor_loss), all_finite(actor_grads)]
-        apply_actor = apply & finite[-2] & finite[-1]
-        masked_adam(actor_plan, actor_grads, states[0], [learning_rates[0]], apply_actor)
-        masked_polyak(self._critic_target_parameters, self._critic_parameters, self.tau, apply_actor & target_update)
-        masked_polyak(self.batch_norm_stats_target, self.batch_norm_stats, 1.0, apply_actor & target_update)
-        logged = [ent_coef.reshape(()), critic.critic_loss.detach(), actor_loss.detach()]
-        if ent_coef_loss is not None:
-            logged.append(ent_coef_loss.detach())
-        detached = critic._replace(current_q_values=critic.current_q_values.detach(), critic_loss=critic.critic_loss.detach())
-        return CompiledStepOutput(
-            healthy=apply_actor,
-            finite=th.stack(finite),
-            logged=th.stack(logged),
-            critic_rates=critic_rates,
-            critic=detached,
-            target_entropy=th.as_tensor(target_entropy, device=self.device),
         )
 
     def _start_train(self) -> list[float]:
@@ -621,19 +431,30 @@ class SERASAC(NamedRuns, Capabilities, SAC):
             return th.exp(self.log_ent_coef.detach())
         return self.ent_coef_tensor
 
+    def _learned_log_ent_coef(self) -> th.Tensor | None:
+        """The log entropy coefficient when it is learned (its loss is then computed), else None."""
+        return self.log_ent_coef if self.ent_coef_optimizer is not None else None
+
     def _entropy_target(self, current_q_values: th.Tensor, log_prob: th.Tensor) -> tuple[th.Tensor | float, th.Tensor | None]:
-        """
-        The disagreement-adjusted entropy target ``H_eff = H_target - beta * U`` at the replayed pairs, and the entropy
-        coefficient's loss (None for a fixed coefficient).
-        """
+        """:func:`~sb3_sera.sera.update.entropy_target` at this model's settings."""
         assert isinstance(self.target_entropy, float)
-        target_entropy: th.Tensor | float = self.target_entropy
-        if self.disagreement_coef > 0:
-            disagreement = ensemble_disagreement(current_q_values.detach()).unsqueeze(1)
-            target_entropy = self.target_entropy - self.disagreement_coef * disagreement
-        if self.ent_coef_optimizer is None or self.log_ent_coef is None:
-            return target_entropy, None
-        return target_entropy, -(self.log_ent_coef * (log_prob + target_entropy).detach()).mean()
+        return entropy_target(
+            self.target_entropy, self.disagreement_coef, current_q_values, log_prob, self._learned_log_ent_coef()
+        )
+
+    def _critic_update(self, replay_data: ReplayBufferSamples, ent_coef: th.Tensor) -> CriticUpdate:
+        """:func:`~sb3_sera.sera.update.critic_update` with this model's networks and settings."""
+        return critic_update(
+            self.actor,
+            self.critic,
+            self.critic_target,
+            self.step_size,
+            replay_data,
+            ent_coef,
+            self.gamma,
+            self.target_aggregation,
+            self.sera_options,
+        )
 
     def _check_step(
         self, gradient_step: int, ent_coef: th.Tensor, critic: CriticUpdate, ent_coef_loss: th.Tensor | None
@@ -680,7 +501,8 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         logged: dict[str, list[th.Tensor]],
     ) -> None:
         """Optimize the actor against the aggregated online critics (Algorithm 2, line 24)."""
-        actor_loss = (ent_coef * log_prob - self._actor_q_value(observations, actions_pi)).mean()
+        q_value = actor_value(self.critic, observations, actions_pi, self.actor_aggregation)
+        actor_loss = (ent_coef * log_prob - q_value).mean()
         self._check_finite(gradient_step, {"actor loss": actor_loss}, actor_loss)
         self.actor.optimizer.zero_grad()
         # Gradients for the actor only: the critics' weight gradients would be computed and thrown away
@@ -697,52 +519,6 @@ class SERASAC(NamedRuns, Capabilities, SAC):
             th._foreach_add_(self._critic_target_parameters, self._critic_parameters, alpha=self.tau)
         # Copy running stats, see SB3 GH issue #996
         polyak_update(self.batch_norm_stats, self.batch_norm_stats_target, 1.0)
-
-    def _actor_q_value(self, observations: PyTorchObs, actions_pi: th.Tensor) -> th.Tensor:
-        """
-        The online critics' value of the actor's actions, aggregated by ``actor_aggregation``, shape ``(S, 1)``.
-
-        For the median and the min only the selected critic carries a gradient, so all critics run without a
-        graph to find it and only the selected one runs again, per sample, with a graph.
-        """
-        q_input = self.critic.q_input(observations, actions_pi)
-        if self.actor_aggregation == "mean":
-            return self.critic.q_values_from_input(q_input).mean(dim=1, keepdim=True)
-        with th.no_grad():
-            q_values = self.critic.q_values_from_input(q_input)
-            index = selected_critic(q_values, self.actor_aggregation)
-        assert index is not None
-        return self.critic.selected_q_values(q_input, index)
-
-    def _actor_q_value_gathered(self, observations: PyTorchObs, actions_pi: th.Tensor) -> th.Tensor:
-        """:meth:`_actor_q_value` with static shapes: every critic runs with a graph, the selected one's value is gathered."""
-        q_values = self.critic.q_values(observations, actions_pi)
-        if self.actor_aggregation == "mean":
-            return q_values.mean(dim=1, keepdim=True)
-        index = selected_critic(q_values.detach(), self.actor_aggregation)
-        assert index is not None
-        return q_values.gather(1, index.unsqueeze(1))
-
-    def _diagnostics(self, critic: CriticUpdate, target_entropy: th.Tensor | float) -> th.Tensor:
-        """
-        The SERA diagnostics of a gradient step (SPEC section 1) on the device, to be read in one transfer: the
-        values of :data:`DIAGNOSTICS`, then each critic's ``kappa``, ``P`` and ``R`` in turn, shape ``(7 + 3K,)``.
-        """
-        with th.no_grad():
-            current_q_values = critic.current_q_values.detach()
-            scalars = th.stack(
-                [
-                    batch_variance(critic.target_q_values).squeeze(0),
-                    ensemble_disagreement(current_q_values).mean(),
-                    th.as_tensor(target_entropy, dtype=th.float32, device=self.device).mean(),
-                    critic.next_q_aggregate.mean(),
-                    median_anchor(critic.next_q_values)[0].mean(),
-                    critic_correlation(current_q_values),
-                    td_error_correlation(critic.target_q_values - current_q_values),
-                ]
-            )
-            update = critic.step_size
-            return th.cat([scalars, update.kappa, update.estimation_var, update.measurement_var])
 
     def _excluded_save_params(self) -> list[str]:
         return [

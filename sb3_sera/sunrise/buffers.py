@@ -8,7 +8,7 @@ from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.vec_env import VecNormalize
 
-from sb3_sera.common.checks import check_int, check_range
+from sb3_sera.common.hyperparameters import check_int, check_range
 
 
 class SUNRISEReplayBufferSamples(NamedTuple):

@@ -14,7 +14,7 @@ from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from stable_baselines3.sac.policies import LOG_STD_MAX, LOG_STD_MIN
 from torch import nn
 
-from sb3_sera.common.checks import check_int, check_range
+from sb3_sera.common.hyperparameters import check_int, check_range
 from sb3_sera.common.layers import BatchedLinear, batched_mlp
 from sb3_sera.sunrise.ensemble import squashed_gaussian_sample, ucb_choice
 

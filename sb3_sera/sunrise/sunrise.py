@@ -17,16 +17,6 @@ from stable_baselines3.common.utils import polyak_update
 
 from sb3_sera.common.arguments import check_gymnasium_env, checks_keywords
 from sb3_sera.common.capabilities import Capabilities
-from sb3_sera.common.checks import (
-    check_choice,
-    check_ent_coef,
-    check_finite,
-    check_int,
-    check_off_policy_hyperparameters,
-    check_range,
-    gradient_step_context,
-    with_env_step_check,
-)
 from sb3_sera.common.compiled import (
     COMPILE_MODES,
     CompileMode,
@@ -37,6 +27,14 @@ from sb3_sera.common.compiled import (
     masked_polyak,
     read_steps,
     run_steps,
+)
+from sb3_sera.common.finite import check_finite, gradient_step_context, with_env_step_check
+from sb3_sera.common.hyperparameters import (
+    check_choice,
+    check_ent_coef,
+    check_int,
+    check_off_policy_hyperparameters,
+    check_range,
 )
 from sb3_sera.common.naming import NamedRuns
 from sb3_sera.common.off_policy import record_means, start_train, target_update_due

@@ -1,6 +1,6 @@
 """
 Every algorithm refuses a hyperparameter outside its range at construction, with a ``ValueError`` that names the
-parameter, its value and the allowed range (one set of rules: ``sb3_sera.common.checks``).
+parameter, its value and the allowed range (one set of rules: ``sb3_sera.common.hyperparameters``).
 """
 
 import re
@@ -13,7 +13,7 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 
 from sb3_sera import IET, MADDPG, MAPPO, MASAC, MATD3, SERASAC, SUNRISE
 from sb3_sera.ace import ACE
-from sb3_sera.common.checks import check_hyperparameters
+from sb3_sera.common.hyperparameters import check_hyperparameters
 from tests.helpers import CTDE_TASK, ENV_ID
 
 #: A buffer small enough for a test

@@ -19,7 +19,7 @@ from tests.helpers import ROOT
 def wheel(tmp_path_factory) -> tuple[Path, str]:
     """A wheel built from a copy of the sources with setuptools' own PEP 517 hook, and what the build printed."""
     source = tmp_path_factory.mktemp("source")
-    for name in ("pyproject.toml", "setup.cfg", "README.md"):
+    for name in ("pyproject.toml", "setup.cfg", "README.md", "LICENSE"):
         shutil.copy(ROOT / name, source / name)
     for folder in ("sb3_sera", "hyperparams"):
         shutil.copytree(ROOT / folder, source / folder, ignore=shutil.ignore_patterns("__pycache__"))
@@ -42,7 +42,10 @@ def test_the_wheel_ships_the_hyperparameter_files_and_builds_without_deprecation
     packages = {path.parent.relative_to(ROOT).as_posix() for path in (ROOT / "sb3_sera").rglob("__init__.py")}
     assert {f"{package}/__init__.py" for package in packages} <= set(names)
     metadata = zipfile.ZipFile(path).read(f"sb3_sera-{__version__}.dist-info/METADATA").decode()
-    assert "License-Expression: MIT" in metadata
+    assert "License-Expression: MIT" in metadata and "License-File: LICENSE" in metadata
+    assert "Classifier: Typing :: Typed" in metadata and "Keywords: " in metadata
+    # The license text and PEP 561's marker ship in the wheel
+    assert f"sb3_sera-{__version__}.dist-info/licenses/LICENSE" in names and "sb3_sera/py.typed" in names
     assert "Provides-Extra: plots" in metadata and "rl_zoo3[plots]" in metadata
     assert "Deprecat" not in output, output
 
