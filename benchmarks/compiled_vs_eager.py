@@ -36,6 +36,7 @@ def make_model(compile_update: bool, seed: int = 0, **kwargs: Any) -> SERASAC:
         "MlpPolicy", gym.make("Pendulum-v1"), batch_size=BATCH_SIZE, seed=seed, compile_update=compile_update, **kwargs
     )
     model.set_logger(configure(folder=None, format_strings=[]))
+    assert model.replay_buffer is not None
     env = gym.make("Pendulum-v1")
     obs, _ = env.reset(seed=seed)
     env.action_space.seed(seed)
@@ -50,6 +51,7 @@ def make_model(compile_update: bool, seed: int = 0, **kwargs: Any) -> SERASAC:
 def parameters(model: SERASAC) -> dict[str, th.Tensor]:
     """Every trained tensor of the model: the policy's (actor, critics, target critics) and the entropy coefficient."""
     tensors = {name: value.detach().clone() for name, value in model.policy.state_dict().items()}
+    assert model.log_ent_coef is not None
     tensors["log_ent_coef"] = model.log_ent_coef.detach().clone()
     return tensors
 
