@@ -7,7 +7,7 @@ the ``train()`` call ends.
 """
 
 from functools import partial
-from typing import TYPE_CHECKING, NamedTuple
+from typing import Any, NamedTuple
 
 import torch as th
 from stable_baselines3.common.type_aliases import ReplayBufferSamples
@@ -15,9 +15,6 @@ from stable_baselines3.common.type_aliases import ReplayBufferSamples
 from sb3_sera.common.compiled import all_finite, masked_adam, masked_polyak, read_steps, run_steps
 from sb3_sera.common.finite import gradient_step_context
 from sb3_sera.sera.update import CriticUpdate, actor_value_gathered, diagnostics
-
-if TYPE_CHECKING:
-    from sb3_sera.sera.sera import SERASAC
 
 #: What a compiled gradient step checks, in the order in which a cause precedes its consequences
 COMPILED_QUANTITIES = (
@@ -54,7 +51,7 @@ class CompiledStepOutput(NamedTuple):
 
 
 def gradient_step(
-    model: "SERASAC",
+    model: Any,
     replay_data: ReplayBufferSamples,
     *,
     learning_rates: th.Tensor,
@@ -63,7 +60,8 @@ def gradient_step(
     states: list[list[tuple[th.Tensor, th.Tensor, th.Tensor]]],
 ) -> CompiledStepOutput:
     """
-    One gradient step of ``model`` as one graph, the body ``compile_update`` compiles.
+    One gradient step of ``model`` (a :class:`~sb3_sera.sera.sera.SERASAC`, typed ``Any``: this module sits below
+    it) as one graph, the body ``compile_update`` compiles.
 
     :param learning_rates: the actor's, the entropy coefficient's and the critics' scheduled rates, ``(3,)``
     :param target_update: whether the target critics are updated after this step, a boolean scalar tensor
@@ -125,13 +123,13 @@ def gradient_step(
     )
 
 
-def train_compiled(model: "SERASAC", gradient_steps: int, batch_size: int) -> None:
+def train_compiled(model: Any, gradient_steps: int, batch_size: int) -> None:
     """
     ``model.train()``'s steps through its compiled :func:`gradient_step`: the same values, read from the device once,
     after the last step. A non-finite value raises ``FloatingPointError`` naming the first one; its step and those
     after it changed nothing.
     """
-    sample = partial(model.replay_buffer.sample, batch_size, env=model._vec_normalize_env)  # type: ignore[union-attr]
+    sample = partial(model.replay_buffer.sample, batch_size, env=model._vec_normalize_env)
     outputs: list[CompiledStepOutput] = run_steps(model, sample, model._step_learning_rates(), gradient_steps)
     last = outputs[-1]
     logged, values = read_steps(
