@@ -103,34 +103,6 @@ def check_ent_coef(ent_coef: str | float) -> str | float:
     return ent_coef
 
 
-def check_off_policy_hyperparameters(
-    learning_rate: float | Callable[[float], float],
-    buffer_size: int,
-    learning_starts: int,
-    batch_size: int,
-    tau: float,
-    gamma: float,
-    gradient_steps: int,
-) -> dict[str, Any]:
-    """
-    Raise ``ValueError`` for one of SB3's off-policy hyperparameters outside its range, naming it, its value and the
-    range (:func:`check_hyperparameters`'s rules).
-
-    :return: the hyperparameters by name, numbers as Python ``int`` and ``float``
-    """
-    return check_hyperparameters(
-        dict(
-            learning_rate=learning_rate,
-            buffer_size=buffer_size,
-            learning_starts=learning_starts,
-            batch_size=batch_size,
-            tau=tau,
-            gamma=gamma,
-            gradient_steps=gradient_steps,
-        )
-    )
-
-
 # --- Hyperparameter ranges of SB3's algorithms, one rule per name ---
 
 

@@ -20,9 +20,7 @@ from sb3_sera.common.compiled import COMPILE_MODES, CompileMode, compile_model_s
 from sb3_sera.common.finite import check_finite, gradient_step_context, with_env_step_check
 from sb3_sera.common.hyperparameters import (
     check_choice,
-    check_ent_coef,
-    check_int,
-    check_off_policy_hyperparameters,
+    check_hyperparameters,
     check_range,
 )
 from sb3_sera.common.naming import NamedRuns
@@ -207,17 +205,20 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         self.critic_learning_rate = critic_learning_rate
         self.disagreement_coef = disagreement_coef
         self.compile_update = compile_update
-        sac_hyperparameters = _check_sac_hyperparameters(
-            learning_rate=learning_rate,
-            buffer_size=buffer_size,
-            learning_starts=learning_starts,
-            batch_size=batch_size,
-            tau=tau,
-            gamma=gamma,
-            gradient_steps=gradient_steps,
-            n_steps=n_steps,
-            ent_coef=ent_coef,
-            target_update_interval=target_update_interval,
+        # Numbers as Python int and float (numpy scalars and integral floats such as 1e4 accepted, as SB3 accepts them)
+        sac_hyperparameters = check_hyperparameters(
+            dict(
+                learning_rate=learning_rate,
+                buffer_size=buffer_size,
+                learning_starts=learning_starts,
+                batch_size=batch_size,
+                tau=tau,
+                gamma=gamma,
+                gradient_steps=gradient_steps,
+                n_steps=n_steps,
+                ent_coef=ent_coef,
+                target_update_interval=target_update_interval,
+            )
         )
         self._check_sera_hyperparameters()
         if self.adaptive_critic_lr and self.critic_lr_max is None and learning_rate != DEFAULT_LEARNING_RATE:
@@ -537,31 +538,3 @@ class SERASAC(NamedRuns, Capabilities, SAC):
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts, saved_pytorch_variables = super()._get_torch_save_params()
         return [*state_dicts, "step_size"], saved_pytorch_variables
-
-
-def _check_sac_hyperparameters(
-    learning_rate: float | Schedule,
-    buffer_size: int,
-    learning_starts: int,
-    batch_size: int,
-    tau: float,
-    gamma: float,
-    gradient_steps: int,
-    n_steps: int,
-    ent_coef: str | float,
-    target_update_interval: int,
-) -> dict[str, Any]:
-    """
-    Raise ``ValueError`` for a SAC hyperparameter outside its range, naming it, its value and the range.
-
-    :return: the hyperparameters by name, numbers as Python ``int`` and ``float`` (numpy scalars and integral floats
-        such as ``learning_starts=1e4`` are accepted, as SB3 accepts them)
-    """
-    return {
-        **check_off_policy_hyperparameters(
-            learning_rate, buffer_size, learning_starts, batch_size, tau, gamma, gradient_steps
-        ),
-        "n_steps": check_int("n_steps", n_steps, 1),
-        "target_update_interval": check_int("target_update_interval", target_update_interval, 1),
-        "ent_coef": check_ent_coef(ent_coef),
-    }

@@ -32,8 +32,8 @@ from sb3_sera.common.finite import check_finite, gradient_step_context, with_env
 from sb3_sera.common.hyperparameters import (
     check_choice,
     check_ent_coef,
+    check_hyperparameters,
     check_int,
-    check_off_policy_hyperparameters,
     check_range,
 )
 from sb3_sera.common.naming import NamedRuns
@@ -223,14 +223,16 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
         super().__init__(
             policy,
             env,
-            **check_off_policy_hyperparameters(
-                learning_rate=learning_rate,
-                buffer_size=buffer_size,
-                learning_starts=learning_starts,
-                batch_size=batch_size,
-                tau=tau,
-                gamma=gamma,
-                gradient_steps=gradient_steps,
+            **check_hyperparameters(
+                dict(
+                    learning_rate=learning_rate,
+                    buffer_size=buffer_size,
+                    learning_starts=learning_starts,
+                    batch_size=batch_size,
+                    tau=tau,
+                    gamma=gamma,
+                    gradient_steps=gradient_steps,
+                )
             ),
             train_freq=train_freq,
             action_noise=action_noise,
