@@ -14,11 +14,13 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedul
 from stable_baselines3.common.utils import polyak_update
 
 from sb3_sera.ace.policies import ACEPolicy, MlpPolicy
+from sb3_sera.ace.tuning import ACE_TUNING
 from sb3_sera.common.arguments import check_gymnasium_env, checks_keywords
 from sb3_sera.common.capabilities import Capabilities
 from sb3_sera.common.finite import check_finite, check_replay_batch, gradient_step_context, with_env_step_check
-from sb3_sera.common.hyperparameters import check_choice, check_hyperparameters, check_range
+from sb3_sera.common.hyperparameters import base_arguments, check_choice, check_range
 from sb3_sera.common.naming import NamedRuns
+from sb3_sera.common.tuning import TuningSpace
 
 
 class DecayingNormalNoise(ActionNoise):
@@ -90,6 +92,7 @@ class ACE(NamedRuns, Capabilities, OffPolicyAlgorithm):
     """
 
     multi_agent: ClassVar[bool] = False
+    tuning: ClassVar[TuningSpace | None] = ACE_TUNING
 
     #: SB3's names for Dict observations reach the policy too, so that a multi-agent task gets ACE's own reason
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
@@ -129,41 +132,18 @@ class ACE(NamedRuns, Capabilities, OffPolicyAlgorithm):
         _init_setup_model: bool = True,
     ) -> None:
         check_gymnasium_env(type(self).__name__, env, multi_agent=False)
-        checked = check_hyperparameters(
-            dict(
-                learning_rate=learning_rate,
-                buffer_size=buffer_size,
-                learning_starts=learning_starts,
-                batch_size=batch_size,
-                tau=tau,
-                gamma=gamma,
-                train_freq=train_freq,
-                gradient_steps=gradient_steps,
-                n_steps=n_steps,
-                stats_window_size=stats_window_size,
-            )
+        arguments = base_arguments(
+            OffPolicyAlgorithm.__init__,
+            locals(),
+            sde_support=False,
+            supported_action_spaces=(spaces.Box,),
+            support_multi_env=True,
         )
         self.exploration_noise = check_range("exploration_noise", exploration_noise, 0.0, None)
         self.critic_loss_weight = check_range("critic_loss_weight", critic_loss_weight, 0.0, None, low_inclusive=False)
         check_choice("align_next_value", align_next_value, (True, False))
         self.align_next_value = align_next_value
-        super().__init__(
-            policy,
-            env,
-            **checked,
-            action_noise=action_noise,
-            replay_buffer_class=replay_buffer_class,
-            replay_buffer_kwargs=replay_buffer_kwargs,
-            optimize_memory_usage=optimize_memory_usage,
-            policy_kwargs=policy_kwargs,
-            tensorboard_log=tensorboard_log,
-            verbose=verbose,
-            device=device,
-            seed=seed,
-            sde_support=False,
-            supported_action_spaces=(spaces.Box,),
-            support_multi_env=True,
-        )
+        super().__init__(**arguments)
         if _init_setup_model:
             self._setup_model()
 

@@ -2,6 +2,8 @@
 
 from typing import Any, ClassVar
 
+from sb3_sera.common.tuning import TuningSpace
+
 
 class Capabilities:
     """
@@ -19,6 +21,9 @@ class Capabilities:
     has_q_critics: ClassVar[bool] = True
     #: The SB3 algorithm (rl-zoo3's name) whose hyperparameter sampler tunes it; None: a sampler of its own
     tunes_like: ClassVar[str | None] = None
+    #: Its own search space for rl-zoo3's ``optimize`` (:class:`~sb3_sera.common.tuning.TuningSpace`), declared
+    #: beside the algorithm; None: it tunes like ``tunes_like``
+    tuning: ClassVar[TuningSpace | None] = None
 
 
 def capabilities(algorithm: type[Any]) -> dict[str, Any]:

@@ -7,6 +7,7 @@ integral floats (``1e4``, as YAML files and rl-zoo3's ``-params learning_starts:
 value as a plain Python ``float`` or ``int``. :func:`check_hyperparameters` holds one rule per SB3 hyperparameter name.
 """
 
+import inspect
 import math
 import numbers
 from collections.abc import Callable, Collection, Mapping
@@ -209,3 +210,18 @@ def check_hyperparameters(hyperparameters: Mapping[str, Any], on_policy: bool = 
     """
     rules = ON_POLICY_RULES if on_policy else OFF_POLICY_RULES
     return {name: rules[name](name, value) if name in rules else value for name, value in hyperparameters.items()}
+
+
+def base_arguments(base_init: Callable[..., Any], arguments: Mapping[str, Any], **fixed: Any) -> dict[str, Any]:
+    """
+    The keyword arguments a constructor passes on to the SB3 constructor it builds on, written once for every
+    algorithm of the package: those of ``arguments`` (the constructor's own, as ``locals()`` gives them) that
+    ``base_init`` takes, checked by :func:`check_hyperparameters`, and ``fixed``, which the algorithm sets itself.
+
+    :param base_init: the SB3 constructor (``SAC.__init__``, ``OffPolicyAlgorithm.__init__``)
+    :param arguments: the values by name; those ``base_init`` does not take stay behind
+    :param fixed: values set by the algorithm, not by its caller (``supported_action_spaces``, ...), unchecked
+    :return: the keyword arguments for ``base_init``
+    """
+    names = [name for name in inspect.signature(base_init).parameters if name != "self" and name not in fixed]
+    return {**check_hyperparameters({name: arguments[name] for name in names if name in arguments}), **fixed}

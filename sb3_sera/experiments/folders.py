@@ -2,7 +2,7 @@
 The output folder of ``compare`` and ``bench``: a run folder for each spec, and the lock that keeps a second command
 out of it. A run whose records match an earlier run's gets that run's folder: a finished one is read back, not run
 again, only where the same code made it (the same digest of the package's source and the same package versions:
-``records.code_difference``; otherwise it is kept and the run trained again in a new folder); an interrupted one goes
+``provenance.code_difference``; otherwise it is kept and the run trained again in a new folder); an interrupted one goes
 on there from its last checkpoint (made by the same code) or, without one, from step 0. A folder whose records are
 damaged is named with the file and the reason and left as it is. Any other run gets a new ``<env_name>_<id>`` with
 the next free id, its records written at once (atomically). Every decision is announced per run.
@@ -19,9 +19,9 @@ from typing import Any
 import yaml
 
 from sb3_sera.experiments.checkpoint import has_checkpoint
+from sb3_sera.experiments.provenance import code_difference
 from sb3_sera.experiments.records import (
     RESULT_FILE,
-    code_difference,
     env_name,
     load_result,
     plain,

@@ -11,7 +11,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from sb3_sera.experiments.checkpoint import CHECKPOINT_FREQ
-from sb3_sera.experiments.records import code_digest, package_versions, plain, source_revision
+from sb3_sera.experiments.provenance import code_digest, package_versions, source_revision
+from sb3_sera.experiments.records import plain
 from sb3_sera.experiments.registry import (
     SHARED_SETTINGS,
     check_hyperparams,
@@ -141,7 +142,7 @@ def make_spec(
     device: str = "auto",
 ) -> RunSpec:
     """
-    A run with the task's hyperparameters from ``hyperparams/<algo>.yml`` (see :func:`default_hyperparams`), then
+    A run with the task's hyperparameters from ``hyperparams/<algo>.yml`` (see :func:`.default_hyperparams`), then
     ``overrides``; ``ValueError`` for a key ``algo`` does not take.
     """
     from sb3_sera.experiments.zoo import check_algo_task

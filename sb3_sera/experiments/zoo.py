@@ -33,6 +33,8 @@ ZOO_BASE_ALGOS = {
     name: capabilities(algo)["tunes_like"] for name, algo in ZOO_ALGOS.items() if capabilities(algo)["tunes_like"]
 }
 
+#: The algorithms with a search space of their own, declared on their classes (``tuning``)
+ZOO_TUNING = {name: capabilities(algo)["tuning"] for name, algo in ZOO_ALGOS.items() if capabilities(algo)["tuning"]}
 
 #: The zoo commands the CLI passes through
 ZOO_COMMANDS = ("train", "enjoy", "record-video", "optimize")
@@ -45,57 +47,6 @@ ZOO_OFF_POLICY_ALGOS = tuple(name for name, algo in ZOO_ALGOS.items() if capabil
 SINGLE_AGENT_ALGOS = tuple(name for name, algo in ZOO_ALGOS.items() if not capabilities(algo)["multi_agent"])
 #: The multi-agent-only algorithms (CTDE tasks alone)
 MULTI_AGENT_ALGOS = tuple(name for name, algo in ZOO_ALGOS.items() if not capabilities(algo)["single_agent"])
-
-
-def _actor_only(hyperparams: dict[str, Any]) -> dict[str, Any]:
-    """Apply the zoo's network size to the actor only: SERASAC's critics keep the Table 4 architectures."""
-    policy_kwargs = hyperparams.setdefault("policy_kwargs", {})
-    if isinstance(policy_kwargs.get("net_arch"), list):
-        policy_kwargs["net_arch"] = {"pi": policy_kwargs["net_arch"]}
-    return hyperparams
-
-
-def sample_serasac_params(trial: Any, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
-    """rl-zoo3's SAC search space (network size for the actor only) plus SERA's own knobs."""
-    from rl_zoo3.hyperparams_opt import sample_sac_params
-
-    hyperparams = _actor_only(sample_sac_params(trial, n_actions=n_actions, n_envs=n_envs, additional_args=additional_args))
-    hyperparams.update(
-        sera_alpha=trial.suggest_float("sera_alpha", 0.0, 1.0),
-        sera_temperature=trial.suggest_float("sera_temperature", 0.1, 10.0, log=True),
-        critic_lr_max=trial.suggest_float("critic_lr_max", 1e-4, 2e-3, log=True),
-        disagreement_coef=trial.suggest_float("disagreement_coef", 0.0, 0.1),
-    )
-    return hyperparams
-
-
-def sample_sunrise_params(trial: Any, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
-    """rl-zoo3's SAC search space plus SUNRISE's ensemble size N, backup temperature T and UCB lambda."""
-    from rl_zoo3.hyperparams_opt import sample_sac_params
-
-    hyperparams = sample_sac_params(trial, n_actions=n_actions, n_envs=n_envs, additional_args=additional_args)
-    hyperparams.update(
-        n_members=trial.suggest_int("n_members", 2, 10),
-        backup_temperature=trial.suggest_float("backup_temperature", 1.0, 50.0, log=True),
-        ucb_lambda=trial.suggest_categorical("ucb_lambda", [0.0, 1.0, 10.0]),
-    )
-    return hyperparams
-
-
-def sample_iet_params(trial: Any, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
-    """rl-zoo3's SAC search space (its network size for the critics) plus IET's latent size."""
-    from rl_zoo3.hyperparams_opt import sample_sac_params
-
-    hyperparams = sample_sac_params(trial, n_actions=n_actions, n_envs=n_envs, additional_args=additional_args)
-    hyperparams["latent_dim"] = trial.suggest_categorical("latent_dim", [5, 10, 16])
-    return hyperparams
-
-
-def convert_serasac_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
-    """A stored trial's parameters as SERASAC's: rl-zoo3's off-policy conversion, network size for the actor only."""
-    from rl_zoo3.hyperparams_opt import convert_offpolicy_params
-
-    return _actor_only(convert_offpolicy_params(sampled_params))
 
 
 def _with_small_buffer(algo_class: type[BaseAlgorithm]) -> type[BaseAlgorithm]:
@@ -118,25 +69,6 @@ def playback_algos() -> dict[str, type[BaseAlgorithm]]:
     return {name: _with_small_buffer(algo) if name in ZOO_OFF_POLICY_ALGOS else algo for name, algo in ZOO_ALGOS.items()}
 
 
-def sample_ace_params(trial: Any, n_actions: int, n_envs: int, additional_args: dict) -> dict[str, Any]:
-    """ACE's own search space: the optimizer and target settings, the exploration noise, the heads and the tree."""
-    return {
-        "learning_rate": trial.suggest_float("learning_rate", 3e-5, 1e-3, log=True),
-        "batch_size": trial.suggest_categorical("batch_size", [64, 128, 256]),
-        "tau": trial.suggest_categorical("tau", [0.001, 0.005, 0.01]),
-        "gamma": trial.suggest_categorical("gamma", [0.98, 0.99, 0.995]),
-        "exploration_noise": trial.suggest_float("exploration_noise", 0.1, 0.5),
-        "policy_kwargs": {"n_actors": trial.suggest_int("n_actors", 1, 8), "depth": trial.suggest_int("depth", 1, 3)},
-    }
-
-
-def convert_ace_params(sampled_params: dict[str, Any]) -> dict[str, Any]:
-    """ACE's stored trial as its hyperparameters: the heads and depth back into ``policy_kwargs``."""
-    params = dict(sampled_params)
-    params["policy_kwargs"] = {"n_actors": params.pop("n_actors"), "depth": params.pop("depth")}
-    return params
-
-
 def register_with_zoo(command: str = "train") -> None:
     """
     Add the package's algorithms, samplers and converters to rl-zoo3's tables, and make its evaluations also record
@@ -150,10 +82,8 @@ def register_with_zoo(command: str = "train") -> None:
     utils.ALGOS.update(playback_algos() if command in PLAYBACK_COMMANDS else ZOO_ALGOS)
     exp_manager.EvalCallback = InitialStateBiasCallback  # type: ignore[misc]
     samplers, converters = hyperparams_opt.HYPERPARAMS_SAMPLER, hyperparams_opt.HYPERPARAMS_CONVERTER
-    samplers["serasac"], converters["serasac"] = sample_serasac_params, convert_serasac_params
-    samplers["sunrise"], converters["sunrise"] = sample_sunrise_params, hyperparams_opt.convert_offpolicy_params
-    samplers["ace"], converters["ace"] = sample_ace_params, convert_ace_params
-    samplers["iet"], converters["iet"] = sample_iet_params, hyperparams_opt.convert_offpolicy_params
+    for algo, space in ZOO_TUNING.items():
+        samplers[algo], converters[algo] = space
     for algo, base in ZOO_BASE_ALGOS.items():
         samplers[algo], converters[algo] = samplers[base], converters[base]
 

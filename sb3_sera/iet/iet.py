@@ -21,11 +21,13 @@ from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper, unwrap_vec_n
 
 from sb3_sera.common.hyperparameters import check_int
 from sb3_sera.common.naming import NamedRuns
+from sb3_sera.common.tuning import TuningSpace
 from sb3_sera.ctde.algorithms import MASAC
 from sb3_sera.ctde.policies import agent_action_dims_of
 from sb3_sera.iet.latents import LATENT_KEY, LatentVecEnv, draw_latents
 from sb3_sera.iet.networks import routing_entropy
 from sb3_sera.iet.policies import IETPolicy
+from sb3_sera.iet.tuning import IET_TUNING
 
 SelfIET = TypeVar("SelfIET", bound="IET")
 
@@ -53,7 +55,7 @@ class IET(NamedRuns, MASAC):
 
     :param latent_dim: size of each agent's latent (the paper's 10), keyword only
 
-    The model's env is the given CTDE env wrapped in :class:`~sb3_sera.iet.latents.LatentVecEnv`, which adds the
+    The model's env is the given CTDE env wrapped in :class:`.LatentVecEnv`, which adds the
     latents to the observations (``"latent"``, shape ``(n_agents, latent_dim)``) so that the replay buffer keeps
     them. ``predict`` also takes the CTDE env's own observations: it then draws the latents itself and returns them
     as the state to pass back, as ``evaluate_policy`` does. ``VecNormalize`` is not supported (its unnormalized
@@ -66,6 +68,7 @@ class IET(NamedRuns, MASAC):
 
     single_agent: ClassVar[bool] = False
     tunes_like: ClassVar[str | None] = None
+    tuning: ClassVar[TuningSpace | None] = IET_TUNING
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"CTDEPolicy": IETPolicy}
     policy: IETPolicy
@@ -86,7 +89,7 @@ class IET(NamedRuns, MASAC):
 
     def with_latents(self, env: VecEnv, seed: int | None = None) -> VecEnv:
         """
-        ``env`` wrapped in :class:`LatentVecEnv` (unless it already holds the latents), after checking it.
+        ``env`` wrapped in :class:`.LatentVecEnv` (unless it already holds the latents), after checking it.
 
         :param env: a vectorized CTDE env with the model's agents
         :param seed: seed of the latents' generator
@@ -116,7 +119,7 @@ class IET(NamedRuns, MASAC):
         super().set_env(self.with_latents(self._wrap_env(env, self.verbose)), force_reset)
 
     def latent_env(self) -> LatentVecEnv | None:
-        """The :class:`LatentVecEnv` that draws the latents of the model's env (None without an env)."""
+        """The :class:`.LatentVecEnv` that draws the latents of the model's env (None without an env)."""
         env = self.env
         while isinstance(env, VecEnvWrapper) and not isinstance(env, LatentVecEnv):
             env = env.venv

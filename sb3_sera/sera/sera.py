@@ -19,12 +19,13 @@ from sb3_sera.common.capabilities import Capabilities
 from sb3_sera.common.compiled import COMPILE_MODES, CompileMode, compile_model_step, learning_rates_tensor
 from sb3_sera.common.finite import check_finite, gradient_step_context, with_env_step_check
 from sb3_sera.common.hyperparameters import (
+    base_arguments,
     check_choice,
-    check_hyperparameters,
     check_range,
 )
 from sb3_sera.common.naming import NamedRuns
 from sb3_sera.common.off_policy import record_means, start_train, target_update_due
+from sb3_sera.common.tuning import TuningSpace
 from sb3_sera.ctde.policies import fill_agent_layout, make_env_for_policy
 from sb3_sera.sera import compiled_step
 from sb3_sera.sera.aggregation import (
@@ -36,8 +37,17 @@ from sb3_sera.sera.aggregation import (
     TargetAggregation,
     TemperatureMode,
 )
-from sb3_sera.sera.policies import CnnPolicy, HeterogeneousCritics, MlpPolicy, MultiInputPolicy, SERACTDEPolicy, SERAPolicy
+from sb3_sera.sera.policies import (
+    CnnPolicy,
+    HeterogeneousCritics,
+    MlpPolicy,
+    MultiInputPolicy,
+    SERACTDEPolicy,
+    SERAPolicy,
+    check_n_critics,
+)
 from sb3_sera.sera.step_size import StepSizeUpdate, VarianceAdaptiveStepSize
+from sb3_sera.sera.tuning import SERASAC_TUNING
 from sb3_sera.sera.update import (
     DIAGNOSTICS,
     CriticUpdate,
@@ -138,6 +148,7 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         "MultiInputPolicy": MultiInputPolicy,
         "CTDEPolicy": SERACTDEPolicy,
     }
+    tuning: ClassVar[TuningSpace | None] = SERASAC_TUNING
     policy: SERAPolicy
     critic: HeterogeneousCritics  # type: ignore[assignment]
     critic_target: HeterogeneousCritics  # type: ignore[assignment]
@@ -205,26 +216,14 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         self.critic_learning_rate = critic_learning_rate
         self.disagreement_coef = disagreement_coef
         self.compile_update = compile_update
-        # Numbers as Python int and float (numpy scalars and integral floats such as 1e4 accepted, as SB3 accepts them)
-        sac_hyperparameters = check_hyperparameters(
-            dict(
-                learning_rate=learning_rate,
-                buffer_size=buffer_size,
-                learning_starts=learning_starts,
-                batch_size=batch_size,
-                tau=tau,
-                gamma=gamma,
-                gradient_steps=gradient_steps,
-                n_steps=n_steps,
-                ent_coef=ent_coef,
-                target_update_interval=target_update_interval,
-            )
-        )
-        self._check_sera_hyperparameters()
+        # SERA's own ranges first (an ensemble needs two critics, where SB3's rule allows one), then SB3's, numbers as
+        # Python int and float (numpy scalars and integral floats such as 1e4 accepted, as SB3 accepts them)
+        self._check_sera_hyperparameters(policy_kwargs)
+        sac_arguments = base_arguments(SAC.__init__, locals())
         if self.adaptive_critic_lr and self.critic_lr_max is None and learning_rate != DEFAULT_LEARNING_RATE:
             rates = f"[{self.kappa_min * DEFAULT_CRITIC_LR_MAX:g}, {DEFAULT_CRITIC_LR_MAX:g}]"
             warnings.warn(
-                f"SERASAC: learning_rate={sac_hyperparameters['learning_rate']!r} sets the learning rate of the actor "
+                f"SERASAC: learning_rate={sac_arguments['learning_rate']!r} sets the learning rate of the actor "
                 "and of the entropy coefficient only. With adaptive_critic_lr=True the critics learn at critic_lr_max * "
                 f"(kappa_min + (1 - kappa_min) * kappa), in {rates} with the default critic_lr_max="
                 f"{DEFAULT_CRITIC_LR_MAX:g}. Pass critic_lr_max (a float or a schedule) to set the critics' rate as "
@@ -232,31 +231,15 @@ class SERASAC(NamedRuns, Capabilities, SAC):
                 UserWarning,
                 stacklevel=2,
             )
-        env = make_env_for_policy(type(self), policy, env, verbose)
-        super().__init__(
-            policy,
-            env,
-            **sac_hyperparameters,
-            train_freq=train_freq,
-            action_noise=action_noise,
-            replay_buffer_class=replay_buffer_class,
-            replay_buffer_kwargs=replay_buffer_kwargs,
-            optimize_memory_usage=optimize_memory_usage,
-            target_entropy=target_entropy,
-            use_sde=use_sde,
-            sde_sample_freq=sde_sample_freq,
-            use_sde_at_warmup=use_sde_at_warmup,
-            stats_window_size=stats_window_size,
-            tensorboard_log=tensorboard_log,
-            policy_kwargs=policy_kwargs,
-            verbose=verbose,
-            seed=seed,
-            device=device,
-            _init_setup_model=_init_setup_model,
-        )
+        super().__init__(**{**sac_arguments, "env": make_env_for_policy(type(self), policy, env, verbose)})
 
-    def _check_sera_hyperparameters(self) -> None:
-        """Raise ``ValueError`` for a SERA hyperparameter outside its range; store numbers as Python floats."""
+    def _check_sera_hyperparameters(self, policy_kwargs: dict[str, Any] | None) -> None:
+        """
+        Raise ``ValueError`` for a SERA hyperparameter outside its range, or fewer than two critics in
+        ``policy_kwargs``; store numbers as Python floats.
+        """
+        if policy_kwargs is not None and "n_critics" in policy_kwargs:
+            check_n_critics(policy_kwargs["n_critics"])
         check_choice("target_aggregation", self.target_aggregation, TARGET_AGGREGATIONS)
         check_choice("actor_aggregation", self.actor_aggregation, ACTOR_AGGREGATIONS)
         check_choice("sera_temperature_mode", self.sera_temperature_mode, TEMPERATURE_MODES)

@@ -30,14 +30,15 @@ from sb3_sera.common.compiled import (
 )
 from sb3_sera.common.finite import check_finite, gradient_step_context, with_env_step_check
 from sb3_sera.common.hyperparameters import (
+    base_arguments,
     check_choice,
     check_ent_coef,
-    check_hyperparameters,
     check_int,
     check_range,
 )
 from sb3_sera.common.naming import NamedRuns
 from sb3_sera.common.off_policy import record_means, start_train, target_update_due
+from sb3_sera.common.tuning import TuningSpace
 from sb3_sera.sunrise.buffers import SUNRISEReplayBuffer, SUNRISEReplayBufferSamples
 from sb3_sera.sunrise.ensemble import backup_weight, ensemble_std, masked_mean, weighted_bellman_loss
 from sb3_sera.sunrise.policies import (
@@ -48,6 +49,7 @@ from sb3_sera.sunrise.policies import (
     MlpPolicy,
     SUNRISEPolicy,
 )
+from sb3_sera.sunrise.tuning import SUNRISE_TUNING
 
 #: What a compiled gradient step checks, in the order in which a cause precedes its consequences
 COMPILED_QUANTITIES = (
@@ -155,6 +157,7 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
     """
 
     multi_agent: ClassVar[bool] = False
+    tuning: ClassVar[TuningSpace | None] = SUNRISE_TUNING
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpPolicy": MlpPolicy}
     policy: SUNRISEPolicy
@@ -221,33 +224,14 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
             for name in sorted(set(names) & set(kwargs or {})):
                 raise ValueError(f"{argument}[{name!r}] is invalid: pass {name} to SUNRISE itself")
         super().__init__(
-            policy,
-            env,
-            **check_hyperparameters(
-                dict(
-                    learning_rate=learning_rate,
-                    buffer_size=buffer_size,
-                    learning_starts=learning_starts,
-                    batch_size=batch_size,
-                    tau=tau,
-                    gamma=gamma,
-                    gradient_steps=gradient_steps,
-                )
-            ),
-            train_freq=train_freq,
-            action_noise=action_noise,
-            replay_buffer_class=replay_buffer_class or SUNRISEReplayBuffer,
-            replay_buffer_kwargs=replay_buffer_kwargs,
-            optimize_memory_usage=optimize_memory_usage,
-            policy_kwargs=policy_kwargs,
-            stats_window_size=stats_window_size,
-            tensorboard_log=tensorboard_log,
-            verbose=verbose,
-            device=device,
-            seed=seed,
-            sde_support=False,
-            supported_action_spaces=(spaces.Box,),
-            support_multi_env=True,
+            **base_arguments(
+                OffPolicyAlgorithm.__init__,
+                locals(),
+                replay_buffer_class=replay_buffer_class or SUNRISEReplayBuffer,
+                sde_support=False,
+                supported_action_spaces=(spaces.Box,),
+                support_multi_env=True,
+            )
         )
         self.target_update_interval = check_int("target_update_interval", target_update_interval, 1)
         self.ent_coef = check_ent_coef(ent_coef)

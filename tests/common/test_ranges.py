@@ -13,7 +13,7 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 
 from sb3_sera import IET, MADDPG, MAPPO, MASAC, MATD3, SERASAC, SUNRISE
 from sb3_sera.ace import ACE
-from sb3_sera.common.hyperparameters import check_hyperparameters
+from sb3_sera.common.hyperparameters import base_arguments, check_hyperparameters
 from tests.helpers import CTDE_TASK, ENV_ID
 
 #: A buffer small enough for a test
@@ -53,7 +53,8 @@ OFF_POLICY_CASES = [
 ]
 CASES = [
     *[(name, *case) for name in OFF_POLICY for case in OFF_POLICY_CASES],
-    *[(name, "train_freq", 0, "an integer >= 1") for name in ("ACE", "MASAC", "MATD3", "MADDPG", "IET")],
+    *[(name, "train_freq", 0, "an integer >= 1") for name in OFF_POLICY],
+    *[(name, "stats_window_size", 0, "an integer >= 1") for name in OFF_POLICY if name != "MADDPG"],
     *[(name, "n_steps", 0, "an integer >= 1") for name in ("ACE", "SERASAC", "MASAC", "MATD3", "MADDPG", "IET")],
     *[(name, "target_update_interval", 0, "an integer >= 1") for name in SAC_FAMILY],
     *[(name, "ent_coef", -0.1, r"\(0\.0, inf\)") for name in SAC_FAMILY],
@@ -107,11 +108,23 @@ def test_positional_hyperparameters_are_checked_too(algo):
         algo("CTDEPolicy", CTDE_TASK, 1e-3, 1_000, 100, 32, 1.5)
 
 
-@pytest.mark.parametrize("name", ["ACE", "MASAC", "MATD3", "MADDPG", "IET"])
+@pytest.mark.parametrize("name", ["ACE", "SUNRISE", "SERASAC", "MASAC", "MATD3", "MADDPG", "IET"])
 def test_numbers_as_yaml_and_numpy_give_them_as_python_numbers(name):
     model = build(name)(learning_starts=1e2, batch_size=np.int64(16), tau=np.float32(0.5), gamma=np.float64(0.9))
     assert (model.learning_starts, model.batch_size, model.tau, model.gamma) == (100, 16, 0.5, 0.9)
     assert type(model.learning_starts) is int and type(model.tau) is float
+
+
+def test_base_arguments_pass_on_what_the_base_takes_checked_and_the_algorithms_own_values():
+    def base_init(self, policy, env, learning_rate=3e-4, batch_size=256, supported_action_spaces=None):
+        """An SB3 constructor's shape."""
+
+    arguments = dict(self=None, policy="MlpPolicy", env="E", learning_rate=np.float32(0.5), batch_size=1e2, n_members=5)
+    passed = base_arguments(base_init, arguments, supported_action_spaces=("Box",))
+    assert passed == dict(policy="MlpPolicy", env="E", learning_rate=0.5, batch_size=100, supported_action_spaces=("Box",))
+    assert type(passed["batch_size"]) is int and type(passed["learning_rate"]) is float
+    with pytest.raises(ValueError, match=r"^batch_size=0 is "):
+        base_arguments(base_init, {**arguments, "batch_size": 0})
 
 
 def test_every_rule_names_its_parameter():

@@ -259,3 +259,21 @@ def test_the_zoo_reads_the_capabilities_the_classes_declare():
     assert set(SINGLE_AGENT_ALGOS) == {name for name, algo in ZOO_ALGOS.items() if not capabilities(algo)["multi_agent"]}
     assert set(MULTI_AGENT_ALGOS) == {"iet"} and set(SINGLE_AGENT_ALGOS) == {"sunrise", "ace"}
     assert not capabilities(ZOO_ALGOS["mappo"])["off_policy"] and capabilities(ZOO_ALGOS["masac"])["tunes_like"] == "sac"
+
+
+@pytest.mark.parametrize("algo", sorted(ZOO_ALGOS))
+def test_every_algorithm_declares_one_search_space_beside_it_that_round_trips(algo):
+    """A space of its own (``tuning``) or an SB3 algorithm's (``tunes_like``), never both nor neither; a trial's
+    hyperparameters are the algorithm's keywords, and the zoo's conversion of the stored trial gives them back."""
+    from sb3_sera.common.arguments import check_keywords
+    from sb3_sera.common.capabilities import capabilities
+
+    declared = capabilities(ZOO_ALGOS[algo])
+    assert (declared["tuning"] is None) != (declared["tunes_like"] is None)
+    if declared["tuning"] is None:
+        return
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    trial = optuna.create_study(sampler=optuna.samplers.RandomSampler(seed=0)).ask()
+    sampled = declared["tuning"].sample(trial, 2, 1, {"using_her_replay_buffer": False})
+    check_keywords(ZOO_ALGOS[algo], sampled)
+    assert declared["tuning"].convert(dict(trial.params)) == sampled

@@ -10,6 +10,7 @@ from tests.helpers import ROOT
 
 BENCHMARKS = ROOT / "benchmarks"
 TINY_TIMING = ["--blocks", "1", "--block-steps", "2", "--threads", "1"]
+TINY_PEERS = ["--env", "Pendulum-v1", "--learning-starts", "20", "--blocks", "1", "--block-steps", "2", "--warmup-blocks", "0"]
 
 
 @pytest.mark.parametrize(
@@ -35,6 +36,16 @@ TINY_TIMING = ["--blocks", "1", "--block-steps", "2", "--threads", "1"]
             "replay_buffer.pkl",
         ),
         ("compiled_vs_eager.py", ["--against", "eager-gathered", "--steps", "2", "--aggregations", "median"], "| median |"),
+        (
+            "learn_profile.py",
+            ["--env", "Pendulum-v1", "--steps", "5", "--learning-starts", "50", "--models", "SAC", "SERASAC"],
+            "gradient step",
+        ),
+        (
+            "peer_speed.py",
+            [*TINY_PEERS, "--models", "SB3 SAC", "SERASAC eager"],
+            "| SERASAC eager |",
+        ),
     ],
 )
 def test_benchmark_script_runs(script, args, expected):

@@ -1,0 +1,116 @@
+"""
+Where a ``learn()`` step spends its time: SB3 SAC, SERASAC eager and SERASAC with ``compile_update=True`` on the same
+task, after ``learning_starts``, each profiled with ``cProfile`` over ``--steps`` environment steps (one gradient step
+each, SB3's defaults).
+
+The time is split into the parts of SB3's off-policy loop, each the cumulative time of the call that does it (no part
+holds another): action selection (``_sample_action``), the environment step (``VecEnv.step``, the monitor included),
+the replay buffer's ``add`` and ``sample``, the gradient step (``train`` without the sample, the host read and the
+logging it does), reading the step's values back from the device (``read_steps``, the compiled step's one read per
+``train()`` call), logging (``Logger.record`` and ``dump``), the callbacks' ``on_step``, and the rest of the loop.
+``cProfile`` adds its own cost to every Python call, so the shares are a guide to where the time goes and the totals
+are not rates.
+
+    OMP_NUM_THREADS=1 python benchmarks/learn_profile.py --env HalfCheetah-v5 --steps 1000
+"""
+
+import argparse
+import cProfile
+import pstats
+from typing import Any
+
+import torch as th
+from stable_baselines3 import SAC
+from stable_baselines3.common.base_class import BaseAlgorithm
+
+from sb3_sera import SERASAC
+from sb3_sera.common.mujoco_log import route_mujoco_warnings
+
+#: The parts of a ``learn()`` step but the gradient step: (name, the functions whose cumulative time it is, by file
+#: and name)
+PARTS: list[tuple[str, list[tuple[str, str]]]] = [
+    ("action selection", [("off_policy_algorithm.py", "_sample_action")]),
+    ("env step", [("base_vec_env.py", "step")]),
+    ("buffer add", [("buffers.py", "add")]),
+    ("buffer sample", [("buffers.py", "sample")]),
+    ("host read", [("compiled.py", "read_steps")]),
+    ("logging", [("logger.py", "record"), ("logger.py", "dump")]),
+    ("callbacks", [("callbacks.py", "on_step")]),
+]
+
+
+def build(name: str, env_id: str, learning_starts: int, seed: int) -> BaseAlgorithm:
+    """The model after ``learning_starts`` random steps and a few gradient steps (compilation happens here)."""
+    common: dict[str, Any] = dict(seed=seed, learning_starts=learning_starts, device="cpu")
+    model: BaseAlgorithm
+    if name == "SAC":
+        model = SAC("MlpPolicy", env_id, **common)
+    else:
+        model = SERASAC("MlpPolicy", env_id, compile_update=name == "SERASAC+compile", **common)
+    model.learn(learning_starts + 20)
+    return model
+
+
+#: The functions that log from inside ``train()`` (their ``Logger.record`` calls are logging, not the gradient step)
+TRAIN_LOGGERS = ("train", "train_compiled", "_end_train", "record_means")
+
+
+def _cumulative(table: dict[tuple[str, int, str], tuple[Any, ...]], functions: list[tuple[str, str]]) -> float:
+    return sum(
+        entry[3]
+        for (file, _, function), entry in table.items()
+        if any(file.endswith(suffix) and function == name for suffix, name in functions)
+    )
+
+
+def parts(stats: pstats.Stats, total: float) -> dict[str, float]:
+    """Each part's cumulative seconds, the gradient step's, and the rest of ``total``."""
+    table: dict[tuple[str, int, str], tuple[Any, ...]] = stats.stats  # type: ignore[attr-defined]
+    seconds = {part: _cumulative(table, functions) for part, functions in PARTS}
+    logged_in_train = sum(
+        caller_entry[3]
+        for (file, _, function), entry in table.items()
+        if file.endswith("logger.py") and function == "record"
+        for (_, _, caller), caller_entry in entry[4].items()
+        if caller in TRAIN_LOGGERS
+    )
+    train = _cumulative(table, [("sac.py", "train"), ("sera.py", "train")])
+    seconds["gradient step"] = train - seconds["buffer sample"] - seconds["host read"] - logged_in_train
+    seconds["rest of the loop"] = total - sum(seconds.values())
+    return seconds
+
+
+def main() -> None:
+    route_mujoco_warnings()
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--env", default="HalfCheetah-v5")
+    parser.add_argument("--steps", type=int, default=1000, help="profiled learn() steps per model")
+    parser.add_argument("--learning-starts", type=int, default=1000)
+    parser.add_argument("--models", nargs="+", default=["SAC", "SERASAC", "SERASAC+compile"])
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    th.set_num_threads(1)
+    print(f"{args.env}, {args.steps} learn() steps per model after {args.learning_starts}, one torch thread")
+    columns = {}
+    for name in args.models:
+        model = build(name, args.env, args.learning_starts, args.seed)
+        profiler = cProfile.Profile()
+        profiler.enable()
+        model.learn(args.steps, reset_num_timesteps=False)
+        profiler.disable()
+        stats = pstats.Stats(profiler)
+        total = stats.total_tt  # type: ignore[attr-defined]
+        columns[name] = (total, parts(stats, total))
+    names = list(columns)
+    print(f"{'part':<18}" + "".join(f"{name:>24}" for name in names))
+    for part in [*(part for part, _ in PARTS), "gradient step", "rest of the loop"]:
+        cells = [
+            f"{1e3 * seconds[part] / args.steps:7.3f} ms {100 * seconds[part] / total:5.1f}%"
+            for total, seconds in columns.values()
+        ]
+        print(f"{part:<18}" + "".join(f"{cell:>24}" for cell in cells))
+    print(f"{'total per step':<18}" + "".join(f"{1e3 * total / args.steps:>21.3f} ms" for total, _ in columns.values()))
+
+
+if __name__ == "__main__":
+    main()
