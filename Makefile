@@ -9,13 +9,13 @@ STAMP := $(VENV)/.installed-stamp
 # The CPU-only build: make install TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu
 TORCH_INDEX_URL ?=
 
-.PHONY: install demo test test-slow lint type bench clean
+.PHONY: install demo test test-slow lint type bench docs clean
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -c constraints.txt torch $(if $(TORCH_INDEX_URL),--extra-index-url $(TORCH_INDEX_URL))
-	$(PY) -m pip install --quiet -c constraints.txt -e ".[dev,distributed,plots]"
+	$(PY) -m pip install --quiet -c constraints.txt -e ".[dev,distributed,plots,docs]"
 	touch $(STAMP)
 
 install: $(STAMP)
@@ -43,5 +43,10 @@ type: install
 bench: install
 	$(PY) benchmarks/train_speed.py
 
+# The documentation site, offline, with every warning an error and every cross-reference checked (nitpicky)
+docs: install
+	$(PY) -m sphinx -W --keep-going -n -b html docs docs/_build/html
+	@echo "Open docs/_build/html/index.html"
+
 clean:
-	rm -rf $(VENV) logs build *.egg-info .pytest_cache .mypy_cache .ruff_cache
+	rm -rf $(VENV) logs build docs/_build *.egg-info .pytest_cache .mypy_cache .ruff_cache

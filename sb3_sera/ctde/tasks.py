@@ -130,12 +130,12 @@ def make_mamujoco(
     **kwargs: Any,
 ) -> CTDEEnv:
     """
-    A Gymnasium-Robotics MaMuJoCo task as a :class:`CTDEEnv` (state: the full MuJoCo observation).
+    A Gymnasium-Robotics MaMuJoCo task as a :class:`.CTDEEnv` (state: the full MuJoCo observation).
 
     :param scenario: MuJoCo robot, see :data:`MAMUJOCO_LAYOUTS`
     :param agent_conf: how its joints are split between agents, see :data:`MAMUJOCO_LAYOUTS`
     :param agent_obsk: how many graph hops away an agent observes other joints
-    :param reward_mode: see :class:`CTDEEnv` (MaMuJoCo gives every agent the same reward)
+    :param reward_mode: see :class:`.CTDEEnv` (MaMuJoCo gives every agent the same reward)
     :param agent_indicator: pad observations and append a one-hot agent indicator (for actor sharing)
     :param kwargs: passed to ``gymnasium_robotics.mamujoco_v1.parallel_env``
     """
@@ -161,10 +161,10 @@ def make_multiwalker(
     n_walkers: int = 3, reward_mode: RewardMode = "mean", agent_indicator: bool = False, **kwargs: Any
 ) -> CTDEEnv:
     """
-    SISL multiwalker_v9 as a :class:`CTDEEnv`; its ``max_cycles`` limit becomes a truncation.
+    SISL multiwalker_v9 as a :class:`.CTDEEnv`; its ``max_cycles`` limit becomes a truncation.
 
     :param n_walkers: number of walkers (agents)
-    :param reward_mode: see :class:`CTDEEnv` (with ``shared_reward=True``, the default, all walkers get the same)
+    :param reward_mode: see :class:`.CTDEEnv` (with ``shared_reward=True``, the default, all walkers get the same)
     :param agent_indicator: pad observations and append a one-hot agent indicator (for actor sharing)
     :param kwargs: passed to ``multiwalker_v9.parallel_env`` (``max_cycles``, ``terminate_on_fall``, ...)
     """
@@ -185,11 +185,11 @@ def make_simple_spread(
     N: int = 3, max_cycles: int = 25, reward_mode: RewardMode = "mean", agent_indicator: bool = False, **kwargs: Any
 ) -> CTDEEnv:
     """
-    MPE2 simple_spread_v3 with continuous actions (in [0, 1]^5) as a :class:`CTDEEnv`.
+    MPE2 simple_spread_v3 with continuous actions (in [0, 1]^5) as a :class:`.CTDEEnv`.
 
     :param N: number of agents and landmarks
     :param max_cycles: episode length
-    :param reward_mode: see :class:`CTDEEnv` (agents' rewards differ by their own collisions)
+    :param reward_mode: see :class:`.CTDEEnv` (agents' rewards differ by their own collisions)
     :param agent_indicator: append a one-hot agent indicator (for actor sharing)
     :param kwargs: passed to ``simple_spread_v3.parallel_env`` (``local_ratio``, ...)
     """
@@ -200,6 +200,7 @@ def make_simple_spread(
     return CTDEEnv(env, reward_mode=reward_mode, agent_indicator=agent_indicator)
 
 
+#: The registered ids: each names its builder in this module and the builder's keyword arguments
 TASKS: dict[str, tuple[str, dict[str, Any]]] = {
     "sb3_sera/HalfCheetah-6x1-v0": ("make_mamujoco", {"scenario": "HalfCheetah", "agent_conf": "6x1"}),
     "sb3_sera/Hopper-3x1-v0": ("make_mamujoco", {"scenario": "Hopper", "agent_conf": "3x1"}),

@@ -73,13 +73,13 @@ def execute(
     progress_bar: bool = True,
 ) -> list[RunResult]:
     """
-    Run every spec in its folder (:func:`assign_folders`): on a local process pool of ``n_jobs`` workers (default:
+    Run every spec in its folder (:func:`.assign_folders`): on a local process pool of ``n_jobs`` workers (default:
     one per core), or as Ray tasks of one CPU each on the cluster at ``ray_address`` (``"auto"``: the one
     ``ray start`` made on this machine). Finished runs are read back, not run again. A failed run does not stop
     the others: once all have ended, each failed run's traceback is printed to stderr and ``RuntimeError`` names
     the failed ones with their errors. A failed run that had not evaluated
     yet leaves no folder behind; one that had keeps its logs, without the ``result.json`` of a finished run.
-    ``out_dir`` is locked while the runs are made (:func:`output_lock`). One Ctrl-C (or SIGTERM) stops every
+    ``out_dir`` is locked while the runs are made (:func:`.output_lock`). One Ctrl-C (or SIGTERM) stops every
     worker and raises :class:`Interrupted` naming the unfinished runs, which the same command resumes.
 
     :return: the results, in the order of ``specs``

@@ -186,7 +186,7 @@ def signed_bias(run: RunResult) -> float | None:
 
 
 def final_return(run: RunResult) -> float | None:
-    """The run's final return (the mean of its last evaluations: :attr:`RunResult.final_return`)."""
+    """The run's final return (the mean of its last evaluations: :attr:`.RunResult.final_return`)."""
     return run.final_return
 
 

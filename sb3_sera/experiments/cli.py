@@ -90,7 +90,7 @@ def _ledger_add(args: argparse.Namespace) -> None:
 
 def _ledger_report(args: argparse.Namespace) -> None:
     path, readme = ledger.write_results(args.ledger, args.docs, args.readme, reps=args.reps)
-    print(f"Report: {path}{_figures(path)}\nResults block rewritten in {readme}")
+    print(f"Report: {path}{_figures(path)}\nResults blocks rewritten in {path.parent / ledger.RESULTS_PAGE} and {readme}")
 
 
 def _add_run_flags(parser: argparse.ArgumentParser) -> None:
@@ -204,7 +204,7 @@ def build_parser() -> argparse.ArgumentParser:
     led_add.add_argument("--ledger", default=ledger.LEDGER_DIR, help="the ledger's folder")
     led_add.set_defaults(func=_ledger_add)
     led_report = led_commands.add_parser(
-        "report", help="regenerate docs/results/ and the README's results block from the ledger alone"
+        "report", help="regenerate docs/results/ (report, figures, results page) and the README's headline from the ledger"
     )
     led_report.add_argument("--ledger", default=ledger.LEDGER_DIR, help="the ledger's folder")
     led_report.add_argument("--docs", default=ledger.DOCS_DIR, help="folder of the full report and its figures")

@@ -137,7 +137,7 @@ def steps_done(folder: Path, budget: int) -> int:
 
 def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
     """
-    Train one run in its folder (made by :func:`assign_folders`), evaluating every ``spec.eval_freq`` steps; a
+    Train one run in its folder (made by :func:`.assign_folders`), evaluating every ``spec.eval_freq`` steps; a
     finished run is read back.
     """
     folder = Path(folder)

@@ -1,6 +1,6 @@
 """
 The results ledger: the compact records of finished runs, committed with the code (``results/`` at the top of the
-repository), so that anyone can re-analyse them, add seeds to them and check every number the README prints.
+repository), so that anyone can re-analyse them, add seeds to them and check every number the docs print.
 
 A ledger run keeps the run engine's layout (``results/<variant>/<env_name>_<id>/``, so ``sb3-sera report results``
 reads it) and only its records: ``<env_name>/config.yml`` and ``args.yml`` (with the git commit of the code that
@@ -10,9 +10,10 @@ ran and whether its tree was clean), ``evaluations.npz``, ``initial_state_bias.n
 record that holds an absolute path, and a run the ledger already has (same algorithm, variant, task, budget,
 evaluation settings, hyperparameters and seed).
 
-:func:`write_results` regenerates the README's results (the Markdown between ``<!-- ledger:begin -->`` and
-``<!-- ledger:end -->``) and the full report with its figures in ``docs/results/`` from the ledger alone;
-:func:`readme_block` is what a test compares the README against.
+:func:`write_results` regenerates, from the ledger alone, the full report with its figures in ``docs/results/``,
+the results page of the docs (``docs/results/index.md``: every table, in the Markdown between
+``<!-- ledger:begin -->`` and ``<!-- ledger:end -->``) and the README's headline (one figure and the primary claims,
+between the same lines); :func:`results_block` and :func:`readme_block` are what a test compares them against.
 """
 
 import os
@@ -25,7 +26,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from sb3_sera.experiments.claims import Claim, claims_section, default_claims, evaluate, load_claims
+from sb3_sera.experiments.claims import Claim, ClaimResult, claims_section, default_claims, evaluate, load_claims
 from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sb3_sera.experiments.identity import identity_lines, load_code_hashes
 from sb3_sera.experiments.records import NPZ_ERRORS, RESULT_FILE, RunResult, env_name, load_result, read_record, run_ids
@@ -38,7 +39,9 @@ LEDGER_DIR = "results"
 CLAIMS_FILE = "claims.yml"
 #: Where the full report from the ledger goes
 DOCS_DIR = "docs/results"
-#: The README's generated results lie between these lines
+#: The docs' results page, in that folder: its generated block holds every table of the ledger
+RESULTS_PAGE = "index.md"
+#: The generated results lie between these lines, on the results page and in the README
 BEGIN, END = "<!-- ledger:begin -->", "<!-- ledger:end -->"
 #: A run's files the ledger keeps (the records folder's are added per task)
 RUN_FILES = ("evaluations.npz", BIAS_FILE, DIAGNOSTICS_FILE, RESULT_FILE)
@@ -229,20 +232,19 @@ def ledger_claims(ledger: str | Path = LEDGER_DIR) -> list[Claim] | None:
     return load_claims(path) if path.exists() else None
 
 
-def readme_block(ledger: str | Path = LEDGER_DIR, reps: int = LEDGER_REPS, docs: str = DOCS_DIR) -> str:
+def results_block(ledger: str | Path = LEDGER_DIR, reps: int = LEDGER_REPS) -> str:
     """
-    The README's results, from the ledger alone: the primary claims with their verdicts, then per task and budget
-    the report's table and a count of the exploratory claims' verdicts, with links to ``docs/results/``, which holds
-    the exploratory claims and the figures.
+    The results page's generated block, from the ledger alone: the primary claims with their verdicts, then per task
+    and budget the report's table and a count of the exploratory claims' verdicts, with links to ``report.md`` (in
+    the page's folder), which holds the exploratory claims and the figures.
     """
     runs, skipped = load_runs([ledger])
     lines = [BEGIN, ""]
     if not runs:
         lines += ["The ledger holds no finished run yet.", ""]
     groups = group_runs(runs)
-    claims = ledger_claims(ledger)
     hashes = load_code_hashes(ledger)
-    decided = evaluate(claims if claims is not None else default_claims(groups), groups)
+    decided = _decided(ledger, groups)
     n_primary = sum(result.claim.primary for result in decided)
     if n_primary:
         lines += [*claims_section([r for r in decided if r.claim.primary], n_primary), ""]
@@ -250,7 +252,7 @@ def readme_block(ledger: str | Path = LEDGER_DIR, reps: int = LEDGER_REPS, docs:
         commits = sorted({_commit(run) for group in section for run in group.runs})
         lines += [
             f"**{env_id}, {budget:,} steps** (code at {', '.join(f'`{c}`' for c in commits)}; figures in "
-            f"[{docs}/report.md]({docs}/report.md))",
+            "[report.md](report.md))",
             "",
             *section_table(section, reps),
             "",
@@ -262,7 +264,7 @@ def readme_block(ledger: str | Path = LEDGER_DIR, reps: int = LEDGER_REPS, docs:
         if exploratory:
             verdicts = [r.verdict for r in exploratory]
             counts = ", ".join(f"{verdicts.count(v)} {v}" for v in dict.fromkeys(verdicts))
-            lines += [f"Exploratory claims on these runs ({counts}): [{docs}/report.md]({docs}/report.md).", ""]
+            lines += [f"Exploratory claims on these runs ({counts}): [report.md](report.md).", ""]
     if skipped:
         # Named inside the ledger, never by the absolute path of the machine that made the block
         names = [f"{Path(ledger).name}/{Path(s.folder).relative_to(ledger).as_posix()}" for s in skipped]
@@ -276,6 +278,44 @@ def readme_block(ledger: str | Path = LEDGER_DIR, reps: int = LEDGER_REPS, docs:
     return "\n".join(lines)
 
 
+def readme_block(ledger: str | Path = LEDGER_DIR, docs: str = DOCS_DIR) -> str:
+    """
+    The README's generated headline, from the ledger alone: the learning curves of the task the primary claims are
+    about (else the first task's), the primary claims with their verdicts, and links to the results page and the
+    report in ``docs`` (a path from the README's folder).
+    """
+    runs, _ = load_runs([ledger])
+    lines = [BEGIN, ""]
+    if not runs:
+        lines += ["The ledger holds no finished run yet.", ""]
+    else:
+        decided = _decided(ledger, group_runs(runs))
+        primary = [result for result in decided if result.claim.primary]
+        sections = list(_sections(runs))
+        env_id, budget = (primary[0].claim.task, primary[0].claim.n_timesteps) if primary else sections[0]
+        if (env_id, budget) not in sections:
+            env_id, budget = sections[0]
+        lines += [
+            f"![{env_id}, {budget:,} steps: learning curves from the ledger]({docs}/{env_name(env_id)}_{budget}_curves.png)",
+            "",
+        ]
+        if primary:
+            lines += [*claims_section(primary, len(primary)), ""]
+    lines += [
+        f"Every table, claim and figure of the ledger: [{docs}/{RESULTS_PAGE}]({docs}/{RESULTS_PAGE}) and "
+        f"[{docs}/report.md]({docs}/report.md).",
+        "",
+        END,
+    ]
+    return "\n".join(lines)
+
+
+def _decided(ledger: str | Path, groups: Sequence[Any]) -> list[ClaimResult]:
+    """The ledger's claims (or each section's default claims, all exploratory) decided on ``groups``."""
+    claims = ledger_claims(ledger)
+    return evaluate(claims if claims is not None else default_claims(groups), groups)
+
+
 def _commit(run: RunResult) -> str:
     records = next(Path(run.folder).glob("*/args.yml"))
     args = read_record(records)
@@ -283,19 +323,20 @@ def _commit(run: RunResult) -> str:
     return commit if args.get("git_clean", True) else f"{commit}, modified tree"
 
 
-def replace_block(text: str, block: str) -> str:
-    """``text`` (the README) with its generated results replaced by ``block``; ``ValueError`` without the markers."""
+def replace_block(text: str, block: str, name: str = "the README") -> str:
+    """``text`` (the README or the results page, ``name``) with its generated results replaced by ``block``;
+    ``ValueError`` without the markers."""
     start, end = text.find(BEGIN), text.find(END)
     if start < 0 or end < start:
-        raise ValueError(f"the README has no results block: add a line {BEGIN} and, below it, a line {END}")
+        raise ValueError(f"{name} has no results block: add a line {BEGIN} and, below it, a line {END}")
     return text[:start] + block + text[end + len(END) :]
 
 
 def current_block(text: str) -> str:
-    """The README's generated results as they stand."""
+    """The generated results of ``text`` (the README or the results page) as they stand."""
     start, end = text.find(BEGIN), text.find(END)
     if start < 0 or end < start:
-        raise ValueError(f"the README has no results block between {BEGIN} and {END}")
+        raise ValueError(f"the text has no results block between {BEGIN} and {END}")
     return text[start : end + len(END)]
 
 
@@ -306,7 +347,9 @@ def write_results(
     reps: int = LEDGER_REPS,
 ) -> tuple[Path, Path]:
     """
-    Regenerate ``docs/results/`` (``report.md`` and every figure) and the README's results block from the ledger.
+    Regenerate ``docs/results/`` (``report.md`` and every figure, and the generated block of the results page
+    ``index.md``, a page holding only that block where there is none yet) and the README's headline block from the
+    ledger.
 
     :return: the report and the README
     """
@@ -325,6 +368,9 @@ def write_results(
         claims=ledger_claims(ledger),
         code_hashes=load_code_hashes(ledger),
     )
+    page = docs / RESULTS_PAGE
+    block = results_block(ledger, reps)
+    page.write_text(replace_block(page.read_text(), block, str(page)) if page.exists() else f"# Results\n\n{block}\n")
     readme = Path(readme)
-    readme.write_text(replace_block(readme.read_text(), readme_block(ledger, reps, docs.as_posix())))
+    readme.write_text(replace_block(readme.read_text(), readme_block(ledger, docs.as_posix())))
     return report, readme

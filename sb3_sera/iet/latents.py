@@ -34,7 +34,7 @@ class LatentVecEnv(VecEnvWrapper):
     :param venv: the vectorized CTDE env (Dict observations)
     :param n_agents: number of agents (rows of the latent)
     :param latent_dim: size of each agent's latent
-    :param seed: seed of the latents' generator (:meth:`seed` sets it again)
+    :param seed: seed of the latents' generator (``seed()`` sets it again)
     """
 
     observation_space: spaces.Dict

@@ -124,7 +124,7 @@ class IETActor(CTDEActor):
     def routing(self, obs: dict[str, th.Tensor]) -> tuple[th.Tensor, th.Tensor]:
         """
         Every agent's routing on a batch of observations: the mixing matrices ``(n_agents, n_layers - 1, batch, M, M)``
-        and the final weights ``(n_agents, batch, M)`` (see :meth:`SoftModularNetwork.routing`).
+        and the final weights ``(n_agents, batch, M)`` (see :meth:`.SoftModularNetwork.routing`).
         """
         matrices, finals = [], []
         for agent in self.agents:

@@ -130,7 +130,9 @@ ACTOR_RULES: dict[ActorAggregation, Callable[[th.Tensor], th.Tensor] | None] = {
     "mean": None,
     "min": lambda q_values: q_values.argmin(dim=1),
 }
+#: The target rules' names, in :data:`TARGET_RULES` order
 TARGET_AGGREGATIONS: tuple[TargetAggregation, ...] = tuple(TARGET_RULES)
+#: The actor rules' names, in :data:`ACTOR_RULES` order
 ACTOR_AGGREGATIONS: tuple[ActorAggregation, ...] = tuple(ACTOR_RULES)
 for _rules, _names in ((TARGET_RULES, TargetAggregation), (ACTOR_RULES, ActorAggregation)):
     if set(_rules) != set(get_args(_names)):

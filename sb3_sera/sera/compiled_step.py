@@ -66,7 +66,7 @@ def gradient_step(
     :param learning_rates: the actor's, the entropy coefficient's and the critics' scheduled rates, ``(3,)``
     :param target_update: whether the target critics are updated after this step, a boolean scalar tensor
     :param healthy: whether every earlier step of the ``train()`` call had only finite values
-    :param states: each optimizer's Adam state (:meth:`AdamPlan.state`), in ``model._adam_plans`` order
+    :param states: each optimizer's Adam state (:meth:`.AdamPlan.state`), in ``model._adam_plans`` order
     """
     actor_plan, critic_plan = model._adam_plans[:2]
     actions_pi, log_prob = model.actor.action_log_prob(replay_data.observations)

@@ -45,7 +45,7 @@ class SUNRISEReplayBuffer(ReplayBuffer):
     """
     SB3's ``ReplayBuffer`` that also stores, for each transition, which of the ``n_members`` members train on it.
 
-    The masks are drawn in :meth:`add` and live in the buffer's arrays, so ``save_replay_buffer`` and
+    The masks are drawn in ``add()`` and live in the buffer's arrays, so ``save_replay_buffer`` and
     ``load_replay_buffer`` keep them.
 
     :param buffer_size: Max number of element in the buffer

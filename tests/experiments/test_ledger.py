@@ -1,4 +1,4 @@
-"""The results ledger: adding finished runs (and refusing the rest), regenerating the README's results."""
+"""The results ledger: adding finished runs (and refusing the rest), regenerating the docs' results and the README's."""
 
 import shutil
 from pathlib import Path
@@ -130,23 +130,37 @@ def test_a_new_seed_gets_the_next_id(bench_out, tmp_path):
     assert read_record(results / "serasac/Pendulum-v1_1/Pendulum-v1/args.yml")["seed"] == 0
 
 
-def test_report_regenerates_the_readme_block_and_docs(bench_out, tmp_path, sb3_sera):
+def test_report_regenerates_the_results_page_the_readme_headline_and_the_report(bench_out, tmp_path, sb3_sera):
     results = tmp_path / "results"
     ledger.add_runs([bench_out], results)
+    docs = tmp_path / "docs"
     readme = tmp_path / "README.md"
     readme.write_text(f"# Title\n\nBefore.\n\n{ledger.BEGIN}\nstale\n{ledger.END}\n\nAfter.\n")
-    sb3_sera("ledger", "report", "--ledger", str(results), "--docs", str(tmp_path / "docs"), "--readme", str(readme))
+    sb3_sera("ledger", "report", "--ledger", str(results), "--docs", str(docs), "--readme", str(readme))
+    # No results page yet: one holding only the block, with a title
+    page = (docs / ledger.RESULTS_PAGE).read_text()
+    assert page.startswith("# Results\n\n") and ledger.current_block(page) == ledger.results_block(results)
+    assert "| serasac | 1 |" in page and "| sac | 1 |" in page and "[report.md](report.md)" in page
+    # The README: its headline block replaced, the text around it kept
     text = readme.read_text()
     assert text.startswith("# Title\n\nBefore.\n\n") and text.endswith("\n\nAfter.\n") and "stale" not in text
-    assert ledger.current_block(text) == ledger.readme_block(results, docs=str(tmp_path / "docs"))
-    assert "| serasac | 1 |" in text and "| sac | 1 |" in text
-    assert (tmp_path / "docs" / "report.md").exists() and list((tmp_path / "docs").glob("*_curves.png"))
+    assert ledger.current_block(text) == ledger.readme_block(results, docs=str(docs))
+    assert f"]({docs}/Pendulum-v1_200_curves.png)" in text and f"]({docs}/{ledger.RESULTS_PAGE})" in text
+    assert (docs / "report.md").exists() and (docs / "Pendulum-v1_200_curves.png").exists()
+    # A results page of its own keeps its text around the block
+    (docs / ledger.RESULTS_PAGE).write_text(f"# Results\n\nRead me.\n\n{ledger.BEGIN}\nstale\n{ledger.END}\n\nAnd me.\n")
+    ledger.write_results(results, docs, readme)
+    page = (docs / ledger.RESULTS_PAGE).read_text()
+    assert page.startswith("# Results\n\nRead me.\n\n") and page.endswith("\n\nAnd me.\n") and "stale" not in page
     with pytest.raises(ValueError, match="the README has no results block"):
         ledger.replace_block("no markers", "block")
 
 
-def test_readme_results_are_what_the_ledger_gives_today():
-    # Every number between the README's ledger markers is regenerated from results/ by `sb3-sera ledger report`
+def test_the_results_page_and_the_readme_are_what_the_ledger_gives_today():
+    # Every number between the ledger markers of the docs' results page and of the README is regenerated from
+    # results/ by `sb3-sera ledger report`
+    page = (ROOT / ledger.DOCS_DIR / ledger.RESULTS_PAGE).read_text()
+    assert ledger.current_block(page) == ledger.results_block(ROOT / "results")
     readme = (ROOT / "README.md").read_text()
     assert ledger.current_block(readme) == ledger.readme_block(ROOT / "results", docs=ledger.DOCS_DIR)
 

@@ -18,8 +18,9 @@ LEARN_BUDGET = re.compile(r"\.learn\(\s*[0-9][0-9_]*")
 PAPER = "SERA: Soft Ensemble Reliability Aggregation for Robust Multi-Agent Reinforcement Learning"
 
 
-def test_the_readme_has_python_blocks():
-    assert len(PYTHON_BLOCKS) >= 2
+def test_the_readme_has_its_example():
+    # The README's ten-line example; the pages of docs/ hold the others (tests/project/test_docs_site.py runs them)
+    assert len(PYTHON_BLOCKS) >= 1 and "SERASAC" in PYTHON_BLOCKS[0]
 
 
 @pytest.mark.parametrize("block", PYTHON_BLOCKS, ids=[f"block{index}" for index in range(len(PYTHON_BLOCKS))])

@@ -112,7 +112,7 @@ def test_make_install_takes_torch_from_torch_index_url_when_set():
     torch_install, package_install = make_install_commands(TORCH_INDEX_URL=cpu)
     assert torch_install.split()[-3:] == ["torch", "--extra-index-url", cpu]
     assert "-c constraints.txt" in torch_install and "index-url" not in package_install
-    assert '-e ".[dev,distributed,plots]"' in package_install
+    assert '-e ".[dev,distributed,plots,docs]"' in package_install
     # Unset: pip's own configuration, no index flag
     torch_install, package_install = make_install_commands()
     assert torch_install.split()[-1] == "torch" and "index-url" not in torch_install + package_install

@@ -22,7 +22,7 @@ def aggregate_section(
 ) -> list[str]:
     """
     Scores aggregated over the task sections of one budget: each final return normalized by its task's fixed
-    reference scores (:func:`paper_reference`: 0 at the paper's lowest column, 1 at the paper's SERA), then per
+    reference scores (:func:`.paper_reference`: 0 at the paper's lowest column, 1 at the paper's SERA), then per
     variant (one settings group per section, the same number of runs in each) the IQM over runs and tasks with its
     interval, and performance profiles.
     """

@@ -39,7 +39,7 @@ def write_report(
     """
     Write ``report.md`` and its figures into the folder ``out`` (see the module's docstring).
 
-    :param runs: finished runs (:func:`load_runs`, or what ``compare``/``bench`` ran)
+    :param runs: finished runs (:func:`.load_runs`, or what ``compare``/``bench`` ran)
     :param skipped: folders left out, listed at the end with their reasons
     :param reps: bootstrap resamples of every interval
     :param matrix_step: the step whose correlation matrices are drawn (None: each run's last evaluation)
@@ -162,7 +162,7 @@ def report_roots(
     log: Callable[[str], None] | None = None,
 ) -> Path:
     """
-    :func:`write_report` for every run under ``roots`` (see :func:`load_runs`); refuses to overwrite an earlier
+    :func:`write_report` for every run under ``roots`` (see :func:`.load_runs`); refuses to overwrite an earlier
     report unless ``overwrite``.
     """
     if (Path(out) / "report.md").exists():
