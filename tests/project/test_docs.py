@@ -4,6 +4,7 @@ import os
 import re
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -18,6 +19,22 @@ LEARN_BUDGET = re.compile(r"\.learn\(\s*[0-9][0-9_]*")
 PAPER = "SERA: Soft Ensemble Reliability Aggregation for Robust Multi-Agent Reinforcement Learning"
 
 
+def run_block_as_written(block: str, folder: Path, where: str = "README") -> None:
+    """
+    Run a Python block of the README or the docs in a fresh interpreter in ``folder``, every ``.learn(<integer>``
+    budget made ``TEST_BUDGET`` steps, and check that it succeeds, writes nothing large and no ``MUJOCO_LOG.TXT``
+    (importing sb3_sera routes MuJoCo's warnings).
+    """
+    script = LEARN_BUDGET.sub(f".learn({TEST_BUDGET}", block)
+    environment = {**os.environ, "OMP_NUM_THREADS": "1", "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    completed = subprocess.run(
+        [sys.executable, "-c", script], cwd=folder, env=environment, capture_output=True, text=True, timeout=600
+    )
+    assert completed.returncode == 0, f"{where}:\n{script}\n{completed.stderr[-3000:]}"
+    written = {path.relative_to(folder).as_posix(): path.stat().st_size for path in folder.rglob("*") if path.is_file()}
+    assert "MUJOCO_LOG.TXT" not in written and max(written.values(), default=0) < 50_000_000, written
+
+
 def test_the_readme_has_its_example():
     # The README's ten-line example; the pages of docs/ hold the others (tests/project/test_docs_site.py runs them)
     assert len(PYTHON_BLOCKS) >= 1 and "SERASAC" in PYTHON_BLOCKS[0]
@@ -25,15 +42,7 @@ def test_the_readme_has_its_example():
 
 @pytest.mark.parametrize("block", PYTHON_BLOCKS, ids=[f"block{index}" for index in range(len(PYTHON_BLOCKS))])
 def test_readme_python_block_runs_as_written(block, tmp_path):
-    script = LEARN_BUDGET.sub(f".learn({TEST_BUDGET}", block)
-    environment = {**os.environ, "OMP_NUM_THREADS": "1", "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
-    completed = subprocess.run(
-        [sys.executable, "-c", script], cwd=tmp_path, env=environment, capture_output=True, text=True, timeout=600
-    )
-    assert completed.returncode == 0, f"{script}\n{completed.stderr[-3000:]}"
-    # Nothing large in the working directory, and no MUJOCO_LOG.TXT (importing sb3_sera routes MuJoCo's warnings)
-    written = {path.relative_to(tmp_path).as_posix(): path.stat().st_size for path in tmp_path.rglob("*") if path.is_file()}
-    assert "MUJOCO_LOG.TXT" not in written and max(written.values(), default=0) < 50_000_000, written
+    run_block_as_written(block, tmp_path)
 
 
 def test_the_readme_cites_the_paper_and_points_only_inside_the_repository():

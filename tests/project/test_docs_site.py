@@ -13,7 +13,7 @@ import pytest
 
 import sb3_sera
 from tests.helpers import ROOT
-from tests.project.test_docs import LEARN_BUDGET, PYTHON_BLOCKS, TEST_BUDGET
+from tests.project.test_docs import PYTHON_BLOCKS, run_block_as_written
 
 DOCS = ROOT / "docs"
 PAGES = sorted(path for path in DOCS.rglob("*.md") if "_build" not in path.parts)
@@ -138,11 +138,4 @@ def test_the_version_is_the_one_cited_and_released():
     ("page", "block"), DOCS_BLOCKS, ids=[f"{page}-{index}" for index, (page, _) in enumerate(DOCS_BLOCKS)]
 )
 def test_docs_python_block_runs_as_written(page, block, tmp_path):
-    script = LEARN_BUDGET.sub(f".learn({TEST_BUDGET}", block)
-    environment = {**os.environ, "OMP_NUM_THREADS": "1", "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
-    completed = subprocess.run(
-        [sys.executable, "-c", script], cwd=tmp_path, env=environment, capture_output=True, text=True, timeout=600
-    )
-    assert completed.returncode == 0, f"{page}:\n{script}\n{completed.stderr[-3000:]}"
-    written = {path.relative_to(tmp_path).as_posix(): path.stat().st_size for path in tmp_path.rglob("*") if path.is_file()}
-    assert "MUJOCO_LOG.TXT" not in written and max(written.values(), default=0) < 50_000_000, written
+    run_block_as_written(block, tmp_path, page)
