@@ -13,10 +13,13 @@ identically on this machine with these package versions.
     OMP_NUM_THREADS=1 python benchmarks/param_hashes.py                      # the working tree, every configuration
     OMP_NUM_THREADS=1 python benchmarks/param_hashes.py --ledger-commits     # the ledger's commits as well
     OMP_NUM_THREADS=1 python benchmarks/param_hashes.py --ledger-commits --jobs 2 --write results/code_hashes.yml
+    OMP_NUM_THREADS=1 python benchmarks/param_hashes.py --ledger-commits --new-commits --write results/code_hashes.yml
 
 ``--ledger-commits`` checks out every commit the ledger's runs name into a temporary git worktree and hashes there
 (this script, run against that commit's package). ``--write`` stores the table in the ledger, where the report reads
-it to flag a group whose runs' code trains differently (``sb3_sera.experiments.identity``).
+it to flag a group whose runs' code trains differently (``sb3_sera.experiments.identity``). ``--new-commits`` adds
+to that table only what it lacks (after new runs: a configuration at a commit it had not run at), so that adding a
+run does not hash the whole ledger again.
 """
 
 import argparse
@@ -153,12 +156,40 @@ def hash_commit(commit: str, found: dict[str, dict[str, Any]]) -> dict[str, str]
             subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], check=True)
 
 
+def table_header() -> dict[str, Any]:
+    """What a hash depends on besides the code: the short run's settings and the versions that ran it."""
+    return {
+        "settings": {"steps": STEPS, "learning_starts": LEARNING_STARTS, "buffer_size": BUFFER_SIZE, "threads": 1},
+        "versions": {"torch": str(th.__version__), "python": sys.version.split()[0]},
+    }
+
+
+def kept_columns(path: Path) -> dict[str, dict[str, str]]:
+    """
+    The hashes of a table written before (``--write``), per commit, where it was made with this script's settings
+    and these versions; ``SystemExit`` where it was not.
+    """
+    if not path.exists():
+        return {}
+    table = yaml.safe_load(path.read_text()) or {}
+    if {key: table.get(key) for key in ("settings", "versions")} != table_header():
+        raise SystemExit(f"{path} was made with other settings or versions: hash every commit again (no --new-commits)")
+    return {str(commit): dict(column) for commit, column in (table.get("hashes") or {}).items()}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--ledger", default=str(ROOT / "results"), help="the ledger whose configurations are hashed")
     parser.add_argument("--ledger-commits", action="store_true", help="also hash at every commit the ledger names")
     parser.add_argument("--write", default=None, help="store the table (YAML) here: the ledger's code_hashes.yml")
     parser.add_argument("--jobs", type=int, default=1, help="trees hashed at a time (one core each)")
+    parser.add_argument(
+        "--new-commits",
+        action="store_true",
+        help="with --ledger-commits and --write: keep the --write table's hashes and add only those it lacks, each "
+        "configuration at the commits it ran at (no working-tree column); the table must have been made with the "
+        "same settings and versions",
+    )
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
@@ -173,21 +204,31 @@ def main() -> None:
     trees = ["working tree"]
     if args.ledger_commits:
         trees += sorted({commit for entry in found.values() for commit in entry["commits"]})
+    # Per tree, the configurations to hash there: every one, or with --new-commits those that ran there unhashed
+    kept: dict[str, dict[str, str]] = {}
+    todo = {tree: found for tree in trees}
+    if args.new_commits and args.write:
+        kept = kept_columns(Path(args.write))
+        todo = {
+            tree: {k: e for k, e in found.items() if tree in e["commits"] and k not in kept.get(tree, {})}
+            for tree in trees[1:]
+        }
+        todo = {tree: configurations for tree, configurations in todo.items() if configurations}
     # One child process per tree, --jobs at a time (each one torch thread)
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:
-        hashed = list(pool.map(lambda tree: hash_commit(tree, found), trees))
-    columns = dict(zip(trees, hashed, strict=True))
+        hashed = dict(zip(todo, pool.map(lambda tree: hash_commit(tree, todo[tree]), todo), strict=True))
+    columns = {tree: {**kept.get(tree, {}), **hashed.get(tree, {})} for tree in [*trees, *kept]}
+    columns = {tree: column for tree, column in columns.items() if column}
     print(f"working tree: {head[:10]}; {STEPS} steps, learning_starts {LEARNING_STARTS}, one thread")
     print("| configuration | " + " | ".join(name[:10] for name in columns) + " |")
     print("|---|" + "---|" * len(columns))
     for key, entry in found.items():
         # A commit the configuration ran at is marked *
-        cells = [f"{column[key]}{' *' if name in entry['commits'] else ''}" for name, column in columns.items()]
+        cells = [f"{column.get(key, '-')}{' *' if name in entry['commits'] else ''}" for name, column in columns.items()]
         print(f"| {key} | " + " | ".join(cells) + " |")
     if args.write:
         table = {
-            "settings": {"steps": STEPS, "learning_starts": LEARNING_STARTS, "buffer_size": BUFFER_SIZE, "threads": 1},
-            "versions": {"torch": str(th.__version__), "python": sys.version.split()[0]},
+            **table_header(),
             "hashes": {commit: column for commit, column in columns.items() if commit != "working tree"},
         }
         Path(args.write).write_text(yaml.safe_dump(table, sort_keys=True))

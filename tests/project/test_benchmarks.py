@@ -76,3 +76,12 @@ def test_param_hashes_of_a_ledger_at_its_commits(tmp_path):
     assert at_commit.endswith(" *") and len(working_tree) == 16
     hashes = yaml.safe_load(table.read_text())["hashes"]
     assert list(hashes) == [head.stdout.strip()] and list(hashes[head.stdout.strip()].values()) == [at_commit[:-2]]
+    # --new-commits keeps what the table has and hashes only what it lacks: here, the configuration taken out of it
+    written = yaml.safe_load(table.read_text())
+    table.write_text(yaml.safe_dump({**written, "hashes": {head.stdout.strip(): {}}}))
+    result = subprocess.run(
+        [*command, "--ledger-commits", "--new-commits", "--write", str(table)], capture_output=True, text=True, timeout=600
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    header = next(line for line in result.stdout.splitlines() if line.startswith("| configuration |"))
+    assert yaml.safe_load(table.read_text()) == written and "working tr" not in header
