@@ -20,7 +20,7 @@ from collections.abc import Callable
 import torch as th
 from stable_baselines3 import SAC
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
-from timing import interleaved_rates, median_iqr
+from timing import add_interleave_arguments, interleaved_rates, median_iqr
 
 from sb3_sera import ACE, IET, MASAC, SERASAC, SUNRISE
 from sb3_sera.common.mujoco_log import route_mujoco_warnings
@@ -41,14 +41,10 @@ MULTI_AGENT = ["MASAC", "SERASAC", "IET"]
 def main() -> None:
     route_mujoco_warnings()  # MuJoCo's warnings through Python's, no MUJOCO_LOG.TXT
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--env", default="HalfCheetah-v5")
+    add_interleave_arguments(parser, blocks=10, block_steps=50, warmup_blocks=2)
     parser.add_argument(
         "--algos", nargs="+", choices=list(ALGORITHMS), help=f"default: {SINGLE_AGENT}, or {MULTI_AGENT} on a CTDE task"
     )
-    parser.add_argument("--blocks", type=int, default=10, help="timed blocks per algorithm")
-    parser.add_argument("--block-steps", type=int, default=50, help="gradient steps per block")
-    parser.add_argument("--warmup-blocks", type=int, default=2, help="untimed blocks first")
-    parser.add_argument("--learning-starts", type=int, default=1000)
     parser.add_argument("--batch-size", type=int, default=None, help="one batch size for all (default: each its own)")
     parser.add_argument("--threads", type=int, default=th.get_num_threads(), help="torch threads (default: torch's)")
     parser.add_argument("--seed", type=int, default=0)

@@ -23,7 +23,7 @@ from typing import Any
 import torch as th
 from stable_baselines3 import SAC
 from stable_baselines3.common.base_class import BaseAlgorithm
-from timing import interleaved_rates, median_iqr
+from timing import add_interleave_arguments, interleaved_rates, median_iqr
 
 from sb3_sera import SERASAC
 from sb3_sera.common.mujoco_log import route_mujoco_warnings
@@ -56,11 +56,7 @@ def builders() -> dict[str, Builder]:
 def main() -> None:
     route_mujoco_warnings()
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--env", default="HalfCheetah-v5")
-    parser.add_argument("--blocks", type=int, default=3, help="timed blocks per model")
-    parser.add_argument("--block-steps", type=int, default=1000, help="learn() steps per block")
-    parser.add_argument("--warmup-blocks", type=int, default=1, help="untimed rounds first")
-    parser.add_argument("--learning-starts", type=int, default=1000)
+    add_interleave_arguments(parser, blocks=3, block_steps=1000, warmup_blocks=1, unit="learn() steps")
     parser.add_argument("--models", nargs="+", help="a subset of the models, by their names in the table")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()

@@ -1,5 +1,6 @@
 """Interleaved timing of SB3 models, shared by the benchmark scripts."""
 
+import argparse
 import time
 from collections.abc import Mapping
 
@@ -51,3 +52,14 @@ def median_iqr(values: list[float]) -> tuple[float, float, float]:
     """Median and interquartile range."""
     low, median, high = np.percentile(values, [25, 50, 75])
     return float(median), float(low), float(high)
+
+
+def add_interleave_arguments(
+    parser: argparse.ArgumentParser, blocks: int, block_steps: int, warmup_blocks: int, unit: str = "gradient steps"
+) -> None:
+    """The arguments every interleaved benchmark takes: its task, the blocks, their size, the untimed rounds first."""
+    parser.add_argument("--env", default="HalfCheetah-v5")
+    parser.add_argument("--blocks", type=int, default=blocks, help="timed blocks per model")
+    parser.add_argument("--block-steps", type=int, default=block_steps, help=f"{unit} per block")
+    parser.add_argument("--warmup-blocks", type=int, default=warmup_blocks, help="untimed rounds first")
+    parser.add_argument("--learning-starts", type=int, default=1000)

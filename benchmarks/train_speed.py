@@ -26,7 +26,7 @@ from typing import Any
 import torch as th
 from stable_baselines3 import SAC
 from stable_baselines3.common.base_class import BaseAlgorithm
-from timing import interleaved_rates, median_iqr
+from timing import add_interleave_arguments, interleaved_rates, median_iqr
 
 from sb3_sera import SERASAC
 from sb3_sera.common.compiled import CompileMode, count_graph_breaks
@@ -53,11 +53,7 @@ def _build(
 def main() -> None:
     route_mujoco_warnings()  # MuJoCo's warnings through Python's, no MUJOCO_LOG.TXT
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--env", default="HalfCheetah-v5")
-    parser.add_argument("--blocks", type=int, default=15, help="timed blocks per algorithm and mode")
-    parser.add_argument("--block-steps", type=int, default=100, help="gradient steps per block")
-    parser.add_argument("--warmup-blocks", type=int, default=2, help="untimed blocks first")
-    parser.add_argument("--learning-starts", type=int, default=1000)
+    add_interleave_arguments(parser, blocks=15, block_steps=100, warmup_blocks=2)
     parser.add_argument("--batch-size", type=int, default=256)
     parser.add_argument("--threads", type=int, default=th.get_num_threads(), help="torch threads (default: torch's)")
     parser.add_argument("--modes", nargs="+", default=["train", "learn"], choices=["train", "learn"])
