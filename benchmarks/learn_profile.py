@@ -20,10 +20,8 @@ import pstats
 from typing import Any
 
 import torch as th
-from stable_baselines3 import SAC
-from stable_baselines3.common.base_class import BaseAlgorithm
+from train_speed import build_model
 
-from sb3_sera import SERASAC
 from sb3_sera.common.mujoco_log import route_mujoco_warnings
 
 #: The parts of a ``learn()`` step but the gradient step: (name, the functions whose cumulative time it is, by file
@@ -37,18 +35,6 @@ PARTS: list[tuple[str, list[tuple[str, str]]]] = [
     ("logging", [("logger.py", "record"), ("logger.py", "dump")]),
     ("callbacks", [("callbacks.py", "on_step")]),
 ]
-
-
-def build(name: str, env_id: str, learning_starts: int, seed: int) -> BaseAlgorithm:
-    """The model after ``learning_starts`` random steps and a few gradient steps (compilation happens here)."""
-    common: dict[str, Any] = dict(seed=seed, learning_starts=learning_starts, device="cpu")
-    model: BaseAlgorithm
-    if name == "SAC":
-        model = SAC("MlpPolicy", env_id, **common)
-    else:
-        model = SERASAC("MlpPolicy", env_id, compile_update=name == "SERASAC+compile", **common)
-    model.learn(learning_starts + 20)
-    return model
 
 
 #: The functions that log from inside ``train()`` (their ``Logger.record`` calls are logging, not the gradient step)
@@ -93,7 +79,15 @@ def main() -> None:
     print(f"{args.env}, {args.steps} learn() steps per model after {args.learning_starts}, one torch thread")
     columns = {}
     for name in args.models:
-        model = build(name, args.env, args.learning_starts, args.seed)
+        model = build_model(
+            name,
+            args.env,
+            seed=args.seed,
+            learning_starts=args.learning_starts,
+            batch_size=256,
+            device="cpu",
+            compile_mode=True,
+        )
         profiler = cProfile.Profile()
         profiler.enable()
         model.learn(args.steps, reset_num_timesteps=False)

@@ -34,7 +34,7 @@ from sb3_sera.common.mujoco_log import route_mujoco_warnings
 from sb3_sera.sera.compiled_step import gradient_step
 
 
-def _build(
+def build_model(
     name: str, env_id: str, *, seed: int, learning_starts: int, batch_size: int, device: str, compile_mode: CompileMode
 ) -> BaseAlgorithm:
     common: dict[str, Any] = dict(seed=seed, learning_starts=learning_starts, device=device)
@@ -67,7 +67,7 @@ def main() -> None:
     names = ["SAC", "SERASAC", *(["SERASAC+compile"] if args.compile else [])]
     compile_mode: CompileMode = "reduce-overhead" if args.cuda_graphs else True
     models = {
-        name: _build(
+        name: build_model(
             name,
             args.env,
             seed=args.seed,
