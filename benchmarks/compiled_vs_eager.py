@@ -8,8 +8,9 @@ step at which it passes ``--bound`` with the parameter where it does.
     OMP_NUM_THREADS=1 python benchmarks/compiled_vs_eager.py --against eager-gathered   # no compilation
 
 ``--against eager-gathered`` compares the eager path with itself, its actor value taken as the compiled step takes
-it (every critic with a graph, the selected one gathered); ``--against step-uncompiled`` with the compiled path's
-step function run eagerly (its masked Adam and target update, no ``torch.compile``).
+it on a GPU (every critic with a graph, the selected one gathered; on a CPU both paths run the selected critic
+alone); ``--against step-uncompiled`` with the compiled path's step function run eagerly (its masked Adam and target
+update, no ``torch.compile``).
 """
 
 import argparse
@@ -76,7 +77,7 @@ def train_in_step(models: list[SERASAC], steps: int, on_step: Callable[[int], No
 
 
 def gathered(train: Callable[..., None]) -> Callable[..., None]:
-    """``train`` with the eager actor value taken as the compiled step takes it (:func:`actor_value_gathered`)."""
+    """``train`` with the eager actor value taken as the compiled step takes it on a GPU (:func:`actor_value_gathered`)."""
 
     def run(*args: Any, **kwargs: Any) -> None:
         with mock.patch.object(sera_module, "actor_value", actor_value_gathered):

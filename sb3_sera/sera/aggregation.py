@@ -185,9 +185,16 @@ def correlation_matrix(values: th.Tensor) -> th.Tensor:
 
     A column that is constant over the batch has no defined correlation: its entries count as zero.
 
+    Computed as ``torch.corrcoef`` computes it, operation for operation (the same values), but without its checks on
+    the data, so that the compiled gradient step traces it.
+
     :param values: one column per critic, shape ``(batch_size, n_critics)``
     """
-    return th.nan_to_num(th.corrcoef(values.T), nan=0.0)
+    columns = values.T
+    centered = columns - columns.mean(dim=1, keepdim=True)
+    covariance = centered @ centered.T / (columns.shape[1] - 1)
+    std = covariance.diagonal().sqrt()
+    return th.nan_to_num((covariance / std[:, None] / std[None, :]).clamp(-1, 1), nan=0.0)
 
 
 def mean_off_diagonal(matrix: th.Tensor) -> th.Tensor:

@@ -3,7 +3,9 @@ SERASAC's ``compile_update``: its gradient step as one ``torch.compile`` graph. 
 :mod:`sb3_sera.sera.update` in the eager ``train()``'s order; it differs only in how updates are applied: gradients
 from ``torch.autograd.grad``, Adam and the target update masked by whether every value so far was finite
 (:func:`~sb3_sera.common.compiled.masked_adam`), the actor's value by gather, and nothing read from the device until
-the ``train()`` call ends.
+the ``train()`` call ends. The actor's value is :func:`~sb3_sera.sera.update.actor_value`, as in ``train()``, on a
+CPU; on a GPU it is :func:`~sb3_sera.sera.update.actor_value_gathered` (static shapes: no synchronisation, and CUDA
+graphs can replay the step).
 """
 
 from functools import partial
@@ -14,7 +16,7 @@ from stable_baselines3.common.type_aliases import ReplayBufferSamples
 
 from sb3_sera.common.compiled import all_finite, masked_adam, masked_polyak, read_steps, run_steps
 from sb3_sera.common.finite import gradient_step_context
-from sb3_sera.sera.update import CriticUpdate, actor_value_gathered, diagnostics
+from sb3_sera.sera.update import actor_value, actor_value_gathered, diagnostics
 
 #: What a compiled gradient step checks, in the order in which a cause precedes its consequences
 COMPILED_QUANTITIES = (
@@ -44,10 +46,8 @@ class CompiledStepOutput(NamedTuple):
     logged: th.Tensor
     #: Each critic's learning rate after the step, ``(K,)``
     critic_rates: th.Tensor
-    #: The critic update, detached (the last step's feeds the diagnostics)
-    critic: CriticUpdate
-    #: The entropy target of the step (``(S, 1)`` with a disagreement adjustment)
-    target_entropy: th.Tensor
+    #: The step's SERA diagnostics (:func:`~sb3_sera.sera.update.diagnostics`; the last step's are logged)
+    diagnostics: th.Tensor
 
 
 def gradient_step(
@@ -100,8 +100,9 @@ def gradient_step(
         for group in model.critic.optimizer.param_groups
     ]
     masked_adam(critic_plan, critic_grads, states[1], group_rates, apply)
-    # The actor against the updated critics, the median critic's value by gather (static shapes)
-    q_value = actor_value_gathered(model.critic, replay_data.observations, actions_pi, model.actor_aggregation)
+    # The actor against the updated critics
+    value = actor_value if model.device.type == "cpu" else actor_value_gathered
+    q_value = value(model.critic, replay_data.observations, actions_pi, model.actor_aggregation)
     actor_loss = (ent_coef * log_prob - q_value).mean()
     actor_grads = th.autograd.grad(actor_loss, actor_plan.params)
     finite += [th.isfinite(actor_loss), all_finite(actor_grads)]
@@ -112,14 +113,12 @@ def gradient_step(
     logged = [ent_coef.reshape(()), critic.critic_loss.detach(), actor_loss.detach()]
     if ent_coef_loss is not None:
         logged.append(ent_coef_loss.detach())
-    detached = critic._replace(current_q_values=critic.current_q_values.detach(), critic_loss=critic.critic_loss.detach())
     return CompiledStepOutput(
         healthy=apply_actor,
         finite=th.stack(finite),
         logged=th.stack(logged),
         critic_rates=critic_rates,
-        critic=detached,
-        target_entropy=th.as_tensor(target_entropy, device=model.device),
+        diagnostics=diagnostics(critic, target_entropy),
     )
 
 
@@ -136,7 +135,7 @@ def train_compiled(model: Any, gradient_steps: int, batch_size: int) -> None:
         outputs,
         COMPILED_QUANTITIES,
         partial(gradient_step_context, model),
-        th.cat([last.critic_rates, diagnostics(last.critic, last.target_entropy)]),
+        th.cat([last.critic_rates, last.diagnostics]),
     )
     n_critics = model.critic.n_critics
     critic_rates, step_diagnostics = values[:n_critics], values[n_critics:]

@@ -143,19 +143,15 @@ class HeterogeneousCritics(BaseModel):
         The value of one critic per sample, ``Q_{index_j}(x_j)``, shape ``(batch_size, 1)``, differentiable.
 
         Each critic runs only on the samples it was selected for, so the cost (and the backward pass) is about
-        that of a single critic on the whole batch instead of all of them.
+        that of a single critic on the whole batch instead of all of them. The rows are found on the device, without
+        reading it: the compiled gradient step traces this function too, its sizes data-dependent.
 
         :param q_input: critic input from :meth:`q_input`, shape ``(batch_size, input_dim)``
         :param critic_index: which critic to use for each sample, shape ``(batch_size,)``
         """
-        order = th.argsort(critic_index)
-        counts = th.bincount(critic_index, minlength=self.n_critics).tolist()
-        values = [
-            q_net(q_input[rows])
-            for q_net, rows, count in zip(self.q_networks, order.split(counts), counts, strict=True)
-            if count > 0
-        ]
-        return th.zeros_like(q_input[:, :1]).index_copy(0, order, th.cat(values))
+        rows = [(critic_index == idx).nonzero().squeeze(1) for idx in range(self.n_critics)]
+        values = [q_net(q_input[selected]) for q_net, selected in zip(self.q_networks, rows, strict=True)]
+        return th.zeros_like(q_input[:, :1]).index_copy(0, th.cat(rows), th.cat(values))
 
     def q1_forward(self, obs: PyTorchObs, actions: th.Tensor) -> th.Tensor:
         """The first critic's value only, without gradient to the features extractor (as SB3's TD3 uses)."""

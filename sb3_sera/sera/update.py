@@ -150,8 +150,9 @@ def actor_value_gathered(
     critic: HeterogeneousCritics, observations: PyTorchObs, actions_pi: th.Tensor, aggregation: ActorAggregation
 ) -> th.Tensor:
     """
-    :func:`actor_value` with static shapes (for the compiled step): every critic runs with a graph, the selected one's
-    value is gathered.
+    :func:`actor_value` with static shapes (the compiled step's on a GPU, where finding each critic's samples would
+    synchronise with the device and keep CUDA graphs from replaying the step): every critic runs with a graph, the
+    selected one's value is gathered.
     """
     q_values = critic.q_values(observations, actions_pi)
     if aggregation == "mean":

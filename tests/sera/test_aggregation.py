@@ -191,3 +191,6 @@ def test_td_error_correlation_against_a_hand_computed_matrix():
     assert th.allclose(correlation_matrix(deltas), expected, atol=1e-6)
     # Mean of the off-diagonal entries: 2 * (0.8 - 1 - 0.8) / 6 = -1/3
     assert td_error_correlation(deltas).item() == pytest.approx(-1 / 3, abs=1e-6)
+    # torch.corrcoef's values bit for bit, computed without its checks on the data (the compiled step traces it)
+    values = th.randn(64, 5, generator=th.Generator().manual_seed(0)) * th.tensor([1.0, 10.0, 100.0, 0.1, 3.0])
+    assert th.equal(correlation_matrix(values), th.corrcoef(values.T))

@@ -11,8 +11,10 @@ from gymnasium import spaces
 from stable_baselines3 import SAC
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.evaluation import evaluate_policy
+from torch._dynamo.utils import counters
 
 from sb3_sera import SERASAC
+from sb3_sera.common.compiled import compile_step
 from sb3_sera.sera.policies import CRITIC_ARCHS
 from tests.helpers import ENV_ID, SMALL, assert_same_state, serasac_as_sac, snapshot
 
@@ -57,6 +59,31 @@ def test_one_parameter_group_per_critic():
     assert [group["critic_index"] for group in groups] == [0, 1, 2, 3, 4]
     for group, q_net in zip(groups, model.critic.q_networks, strict=True):
         assert [id(p) for p in group["params"]] == [id(p) for p in q_net.parameters()]
+
+
+def test_the_selected_critic_runs_on_its_samples_alone_eagerly_and_compiled():
+    # The actor's value under the median or min aggregation: each sample's selected critic, with its gradient, found
+    # without reading the device, so that the compiled step on a CPU traces it (data-dependent sizes in one graph)
+    critic = SERASAC("MlpPolicy", ENV_ID, **SMALL).critic
+    q_input = th.randn(12, 4, requires_grad=True)
+    index = th.tensor([0, 2, 2, 4, 0, 1, 2, 0, 4, 4, 2, 0])  # critic 3 is selected by no sample
+    gathered = critic.q_values_from_input(q_input).gather(1, index.unsqueeze(1))
+    (gathered_grad,) = th.autograd.grad(gathered.sum(), q_input)
+
+    def selected(inputs: th.Tensor, critic_index: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        values = critic.selected_q_values(inputs, critic_index)
+        return values.detach(), th.autograd.grad(values.sum(), inputs)[0]
+
+    compiled = compile_step(selected, True)
+    for run in (selected, compiled):
+        values, grad = run(q_input, index)
+        th.testing.assert_close(values, gathered)
+        th.testing.assert_close(grad, gathered_grad)
+    # Other counts per critic reuse the graph
+    graphs = counters["stats"]["unique_graphs"]
+    values, _ = compiled(q_input, th.arange(12) % 5)
+    th.testing.assert_close(values, critic.q_values_from_input(q_input).gather(1, (th.arange(12) % 5).unsqueeze(1)))
+    assert counters["stats"]["unique_graphs"] == graphs
 
 
 def test_learn_logs_diagnostics():
