@@ -2,10 +2,10 @@
 SERASAC's ``compile_update``: its gradient step as one ``torch.compile`` graph. The step calls the functions of
 :mod:`sb3_sera.sera.update` in the eager ``train()``'s order; it differs only in how updates are applied: gradients
 from ``torch.autograd.grad``, Adam and the target update masked by whether every value so far was finite
-(:func:`~sb3_sera.common.compiled.masked_adam`), the actor's value by gather, and nothing read from the device until
-the ``train()`` call ends. The actor's value is :func:`~sb3_sera.sera.update.actor_value`, as in ``train()``, on a
-CPU; on a GPU it is :func:`~sb3_sera.sera.update.actor_value_gathered` (static shapes: no synchronisation, and CUDA
-graphs can replay the step).
+(:func:`~sb3_sera.common.compiled.masked_adam`), and nothing read from the device until the ``train()`` call ends.
+The actor's value is :func:`~sb3_sera.sera.update.actor_value`, as in ``train()``, on a CPU; on a GPU it is
+:func:`~sb3_sera.sera.update.actor_value_gathered` (static shapes: no synchronisation, and CUDA graphs can replay the
+step).
 """
 
 from functools import partial
