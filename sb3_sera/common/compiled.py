@@ -182,23 +182,36 @@ def masked_adam(
     :param apply: a boolean scalar tensor
     """
     with th.no_grad():
-        for param, grad, group, (step, exp_avg, exp_avg_sq) in zip(plan.params, grads, plan.group_of, state, strict=True):
-            beta1, beta2, eps, weight_decay, decoupled = plan.settings[group]
+        # Each parameter's step size and second-moment correction, stacked into one tensor first: Inductor then
+        # computes each once, where it would otherwise recompute the float64 powers in every vector of the update
+        scalars = []
+        for param, group, (step, _, _) in zip(plan.params, plan.group_of, state, strict=True):
+            beta1, beta2 = plan.settings[group][:2]
             dtype = scalar_dtype(param.device)
-            lr = learning_rates[group].to(dtype)
+            new_step = (step + 1).to(dtype)
+            bias_correction1 = 1 - th.pow(beta1, new_step)
+            bias_correction2_sqrt = (1 - th.pow(beta2, new_step)).sqrt()
+            scalars += [
+                (learning_rates[group].to(dtype) / bias_correction1).to(param.dtype),
+                bias_correction2_sqrt.to(param.dtype),
+            ]
+        corrections = th.stack(scalars)
+        for index, (param, grad, group, (step, exp_avg, exp_avg_sq)) in enumerate(
+            zip(plan.params, grads, plan.group_of, state, strict=True)
+        ):
+            beta1, beta2, eps, weight_decay, decoupled = plan.settings[group]
+            step_size, bias_correction2_sqrt = corrections[2 * index], corrections[2 * index + 1]
             new_param = param
             if weight_decay != 0:
                 if decoupled:
+                    lr = learning_rates[group].to(scalar_dtype(param.device))
                     new_param = param * (1 - lr * weight_decay).to(param.dtype)
                 else:
                     grad = grad.add(param, alpha=weight_decay)
             new_step = step + 1
             new_exp_avg = exp_avg.lerp(grad, 1 - beta1)
             new_exp_avg_sq = exp_avg_sq.mul(beta2).addcmul(grad, grad, value=1 - beta2)
-            bias_correction1 = 1 - th.pow(beta1, new_step.to(dtype))
-            bias_correction2_sqrt = (1 - th.pow(beta2, new_step.to(dtype))).sqrt()
-            step_size = (lr / bias_correction1).to(param.dtype)
-            denom = new_exp_avg_sq.sqrt() / bias_correction2_sqrt.to(param.dtype) + eps
+            denom = new_exp_avg_sq.sqrt() / bias_correction2_sqrt + eps
             new_param = new_param - step_size * new_exp_avg / denom
             param.copy_(th.where(apply, new_param, param))
             exp_avg.copy_(th.where(apply, new_exp_avg, exp_avg))
