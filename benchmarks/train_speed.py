@@ -10,7 +10,9 @@ Both models are built with their defaults on the same task, their replay buffers
 With ``--compile``, a third model, SERASAC with its whole gradient step compiled (``compile_update=True``, or
 ``"reduce-overhead"``, replayed as a CUDA graph, with ``--cuda-graphs``), joins the interleave, and the script prints
 how many graphs and graph breaks Dynamo finds in that step (one graph, no break, when it compiles whole).
-``--device cuda`` runs all three on a GPU.
+``--device cuda`` runs all three on a GPU. With ``--cpp-wrapper`` (CPU), a fourth, the compiled SERASAC with
+Inductor's C++ wrapper (``torch._inductor.config.cpp_wrapper``: the generated code calls its kernels from C++, not
+Python; its compilation takes minutes), joins too.
 
 Each figure is the median over blocks, with the interquartile range; the ratio is SAC's median rate over
 SERASAC's (the wall-time cost of SERASAC per gradient step, in units of SAC's).
@@ -24,6 +26,7 @@ from functools import partial
 from typing import Any
 
 import torch as th
+import torch._inductor.config
 from stable_baselines3 import SAC
 from stable_baselines3.common.base_class import BaseAlgorithm
 from timing import add_interleave_arguments, interleaved_rates, median_iqr
@@ -41,7 +44,7 @@ def build_model(
     if name == "SAC":
         model: BaseAlgorithm = SAC("MlpPolicy", env_id, **common)
     else:
-        compile_update = compile_mode if name == "SERASAC+compile" else False
+        compile_update = compile_mode if name.startswith("SERASAC+") else False
         model = SERASAC("MlpPolicy", env_id, compile_update=compile_update, **common)
     # Fill the replay buffer with random transitions (no gradient step before learning_starts), then take a few
     # untimed gradient steps (compilation happens here)
@@ -61,23 +64,27 @@ def main() -> None:
     parser.add_argument("--compile", action="store_true", help="also time SERASAC with its gradient step compiled")
     parser.add_argument("--cuda-graphs", action="store_true", help="with --compile: compile_update='reduce-overhead'")
     parser.add_argument("--device", default="cpu", help="torch device of all models, e.g. cuda")
+    parser.add_argument("--cpp-wrapper", action="store_true", help="with --compile: also time it with a C++ wrapper")
     args = parser.parse_args()
 
+    if args.cpp_wrapper and (not args.compile or args.device != "cpu"):
+        parser.error("--cpp-wrapper times a compiled step on the CPU: give it with --compile and --device cpu")
     th.set_num_threads(args.threads)
     names = ["SAC", "SERASAC", *(["SERASAC+compile"] if args.compile else [])]
     compile_mode: CompileMode = "reduce-overhead" if args.cuda_graphs else True
-    models = {
-        name: build_model(
-            name,
-            args.env,
-            seed=args.seed,
-            learning_starts=args.learning_starts,
-            batch_size=args.batch_size,
-            device=args.device,
-            compile_mode=compile_mode,
-        )
-        for name in names
-    }
+    build = partial(
+        build_model,
+        env_id=args.env,
+        seed=args.seed,
+        learning_starts=args.learning_starts,
+        batch_size=args.batch_size,
+        device=args.device,
+        compile_mode=compile_mode,
+    )
+    models = {name: build(name) for name in names}
+    if args.compile and args.cpp_wrapper:
+        with torch._inductor.config.patch(cpp_wrapper=True):  # read when the step compiles, in build_model
+            models["SERASAC+cpp"] = build("SERASAC+cpp")
     device = th.cuda.get_device_name() if args.device.startswith("cuda") else "CPU"
     print(f"{args.env}, batch {args.batch_size}, {args.threads} torch thread(s), torch {th.__version__}, {device}")
     print(f"{'mode':<6} {'algorithm':<15} {'steps/s (median)':>17} {'IQR':>15}  ratio (SAC rate / rate)")
