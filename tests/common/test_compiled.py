@@ -2,8 +2,9 @@
 
 import pytest
 import torch as th
+from torch.fx.experimental.proxy_tensor import make_fx
 
-from sb3_sera.common.compiled import AdamPlan, all_finite, masked_adam, masked_polyak
+from sb3_sera.common.compiled import AdamPlan, BiasIntoPointwise, all_finite, masked_adam, masked_polyak
 
 
 @pytest.mark.parametrize(
@@ -59,3 +60,24 @@ def test_masked_polyak_and_all_finite():
 def test_optimizers_a_masked_adam_cannot_follow_are_refused(optimizer, message):
     with pytest.raises(ValueError, match=message):
         AdamPlan(optimizer([th.nn.Parameter(th.zeros(1))]), "test")
+
+
+def test_bias_into_pointwise_splits_only_the_linear_layers_whose_uses_are_pointwise():
+    def layers(x, w1, b1, w2, b2):
+        hidden = th.relu(th.addmm(b1, x, w1))  # pointwise use: split
+        head = th.addmm(b2, hidden, w2)  # used by cat: kept
+        return th.cat([head, head], dim=1) * 2
+
+    th.manual_seed(0)
+    inputs = (th.randn(8, 3), th.randn(3, 5), th.randn(5), th.randn(5, 1), th.randn(1))
+    graph_module = make_fx(layers, tracing_mode="fake")(*inputs)
+    targets = [node.target for node in graph_module.graph.nodes if node.op == "call_function"]
+    assert targets.count(th.ops.aten.addmm.default) == 2
+    BiasIntoPointwise()(graph_module.graph)
+    graph_module.recompile()
+    targets = [node.target for node in graph_module.graph.nodes if node.op == "call_function"]
+    assert targets.count(th.ops.aten.addmm.default) == 1
+    assert targets.count(th.ops.aten.mm.default) == 1
+    assert targets.count(th.ops.aten.add.Tensor) == 1
+    th.testing.assert_close(graph_module(*inputs), layers(*inputs))
+    assert BiasIntoPointwise().uuid() == BiasIntoPointwise().uuid()
