@@ -73,10 +73,10 @@ class BiasIntoPointwise(CustomGraphPass):
     """
     An Inductor pass (after the gradients are traced) that computes a linear layer's ``addmm(bias, x, w)`` as
     ``mm(x, w) + bias`` where every use of its output is pointwise, such as the activation after a hidden layer: the
-    bias is then added in the kernel that Inductor generates for those uses. ``addmm`` first copies the bias into every
-    row of its output for the library's product to add to, a pass over the output that cost 4% of a SERASAC step on a
-    CPU. Inductor does the same on a GPU by itself (``should_prefer_unfused_addmm``). The sum is the same; its rounding
-    may differ in the last bit where the library adds the bias in another order.
+    bias is then added in the kernel that Inductor generates for those uses, where ``addmm`` first copies the bias into
+    every row of its output for the library's product to add to (without that copy a compiled SERASAC step took 3-4%
+    less time on a CPU, ``docs/speed.md``). Inductor does the same on a GPU by itself (``should_prefer_unfused_addmm``).
+    The sum is the same; its rounding may differ in the last bit where the library adds the bias in another order.
     """
 
     def __call__(self, graph: th.fx.Graph) -> None:
