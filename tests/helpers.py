@@ -5,6 +5,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 import torch as th
 
 #: The repository's top folder (README, docs, notebooks, benchmarks, results, hyperparams)
@@ -50,6 +51,22 @@ def assert_close_state(first: dict[str, th.Tensor], second: dict[str, th.Tensor]
     assert first.keys() == second.keys()
     for key, value in first.items():
         np.testing.assert_allclose(value.float(), second[key].float(), rtol=1e-4, atol=1e-5, err_msg=key)
+
+
+def assert_schedule_does_not_recompile(model: Any, batch_size: int, rate: Any) -> None:
+    """
+    Ten ``train()`` calls at falling progress make no new graph of ``model``'s compiled step, and the actor's optimizer
+    follows ``rate(progress)``: the step reads no optimizer (Dynamo would guard on each group's ``lr``, a new graph at
+    every call, and fail at the ninth).
+    """
+    from torch._dynamo.utils import counters
+
+    graphs = counters["stats"]["unique_graphs"]
+    for call in range(10):
+        model._current_progress_remaining = 1 - call / 10
+        model.train(gradient_steps=1, batch_size=batch_size)
+        assert model.actor.optimizer.param_groups[0]["lr"] == pytest.approx(rate(1 - call / 10))
+    assert counters["stats"]["unique_graphs"] == graphs
 
 
 def serasac_as_sac(env: Any, optimizer_kwargs: dict[str, Any] | None = None) -> Any:

@@ -9,6 +9,7 @@ torch ``Adam``/``AdamW`` optimizer and keeps its state in the optimizer, in torc
 loads and continues eagerly as any other.
 """
 
+import time
 from collections.abc import Callable, Sequence
 from contextlib import AbstractContextManager
 from typing import Any, Literal, Protocol, TypeVar
@@ -51,14 +52,15 @@ def compile_step(step: Callable[..., _Output], mode: CompileMode) -> Callable[..
     replayed as a CUDA graph, in Dynamo's settings of :func:`tracing` (set only while the compiled step runs).
     The generated code does not check the sizes, strides and alignment of what each library kernel returns
     (``size_asserts``, ``alignment_asserts``: two Python calls per matrix product, 2% of a SERASAC step on a CPU), and
-    a linear layer whose output only feeds pointwise operations adds its bias in them (:class:`BiasIntoPointwise`).
+    a linear layer whose output only feeds pointwise operations adds its bias in them (:class:`BiasIntoPointwise`), and
+    a product with a narrow output runs transposed where the library runs it faster so (:class:`TransposeNarrowProducts`).
     """
     options: dict[str, str | int | bool | Callable[..., Any]] = {
         "fallback_random": True,
         "triton.cudagraphs": mode == "reduce-overhead",
         "size_asserts": False,
         "alignment_asserts": False,
-        "post_grad_custom_post_pass": BiasIntoPointwise(),
+        "post_grad_custom_post_pass": GraphPasses(BiasIntoPointwise(), TransposeNarrowProducts()),
     }
     compiled = th.compile(step, fullgraph=True, dynamic=False, options=options)
 
@@ -104,6 +106,107 @@ class BiasIntoPointwise(CustomGraphPass):
         return get_hash_for_files((__file__,))
 
 
+#: The least time a transposed product must save for :class:`TransposeNarrowProducts` to take it
+TRANSPOSE_MIN_SAVING = 0.2
+_transposed_is_faster: dict[tuple[Any, ...], bool] = {}
+
+
+def transposed_product_is_faster(left: th.Tensor, right: th.Tensor) -> bool:
+    """
+    Whether ``(right.T @ left.T).T`` takes at least :data:`TRANSPOSE_MIN_SAVING` less time than ``left @ right`` for
+    tensors of these sizes, strides and dtype on this CPU, at torch's current number of threads: each order timed on
+    random data, the best of 30 runs each, and the answer kept for the rest of the process.
+
+    :param left: the first factor (its sizes, strides and dtype are read, a fake tensor will do)
+    :param right: the second factor
+    """
+    key = (*(tuple(t.shape) + tuple(t.stride()) for t in (left, right)), left.dtype, th.get_num_threads())
+    if key not in _transposed_is_faster:
+        a = th.empty_strided(left.shape, left.stride(), dtype=left.dtype).normal_()
+        b = th.empty_strided(right.shape, right.stride(), dtype=right.dtype).normal_()
+
+        def best_seconds(product: Callable[[], th.Tensor]) -> float:
+            product()
+            times = []
+            for _ in range(30):
+                start = time.perf_counter()
+                product()
+                times.append(time.perf_counter() - start)
+            return min(times)
+
+        # The views made before timing: what differs is the library's kernel, not the cost of making a view, which
+        # is not the generated code's either (while Inductor compiles, every Python-level torch call costs more)
+        b_t, a_t = b.T, a.T
+        plain = best_seconds(lambda: th.mm(a, b))
+        transposed = best_seconds(lambda: th.mm(b_t, a_t))
+        _transposed_is_faster[key] = transposed < (1 - TRANSPOSE_MIN_SAVING) * plain
+    return _transposed_is_faster[key]
+
+
+class TransposeNarrowProducts(CustomGraphPass):
+    """
+    An Inductor pass (after the gradients are traced) that computes a product ``left @ right`` whose output is narrow,
+    2 to 32 columns and at least twice as many rows, as ``(right.T @ left.T).T`` where the library runs that order
+    faster (``faster``). Such products are the weight gradients of a layer with few inputs or outputs, such as a
+    critic's first layer on an observation and an action (``grad_out.T @ inputs``, as many columns as the layer has
+    inputs) or the actor's mean and log-std layers. On the development machine's AMD EPYC CPU, MKL took 1.6x-2.5x as
+    long for these as for their transposes (``docs/speed.md``); where a library has no such slow case the timing finds
+    none and the pass changes nothing. The same sums, their rounding possibly different in the last bit. A graph that
+    Inductor's cache holds keeps the orders timed when it was compiled.
+
+    :param faster: whether the transposed order is faster for factors like these (:func:`transposed_product_is_faster`)
+    """
+
+    def __init__(self, faster: Callable[[th.Tensor, th.Tensor], bool] = transposed_product_is_faster):
+        self.faster = faster
+
+    def __call__(self, graph: th.fx.Graph) -> None:
+        mm, permute = th.ops.aten.mm.default, th.ops.aten.permute.default
+        for node in list(graph.nodes):
+            if node.op != "call_function" or node.target is not mm:
+                continue
+            left, right = node.args
+            if not all(isinstance(arg, th.fx.Node) and "val" in arg.meta for arg in (left, right, node)):
+                continue
+            values = [left.meta["val"], right.meta["val"]]
+            if not all(isinstance(size, int) for value in values for size in value.shape):
+                continue  # a data-dependent size (the selected critic's rows)
+            rows, columns = node.meta["val"].shape
+            if not 2 <= columns <= 32 or rows < 2 * columns or any(use.op == "output" for use in node.users):
+                continue
+            if not self.faster(*values):
+                continue
+            with graph.inserting_before(node):
+                right_t = graph.call_function(permute, (right, [1, 0]))
+                left_t = graph.call_function(permute, (left, [1, 0]))
+                product = graph.call_function(mm, (right_t, left_t))
+                total = graph.call_function(permute, (product, [1, 0]))
+            right_t.meta["val"], left_t.meta["val"] = values[1].permute(1, 0), values[0].permute(1, 0)
+            product.meta["val"] = mm(right_t.meta["val"], left_t.meta["val"])
+            total.meta["val"] = product.meta["val"].permute(1, 0)
+            node.replace_all_uses_with(total)
+            graph.erase_node(node)
+
+    def uuid(self) -> bytes:
+        """This file's hash (:meth:`BiasIntoPointwise.uuid`)."""
+        return get_hash_for_files((__file__,))
+
+
+class GraphPasses(CustomGraphPass):
+    """Inductor passes run in turn, as Inductor's one ``post_grad_custom_post_pass``."""
+
+    def __init__(self, *passes: CustomGraphPass):
+        self.passes = passes
+
+    def __call__(self, graph: th.fx.Graph) -> None:
+        for graph_pass in self.passes:
+            graph_pass(graph)
+
+    def uuid(self) -> bytes:
+        """The passes' uuids together (each pass's identifies its code)."""
+        return b"".join(bytes(graph_pass.uuid() or b"") for graph_pass in self.passes)
+
+
 def tracing() -> AbstractContextManager[None]:
     """
     Dynamo's settings for tracing a gradient step: ``torch.autograd.grad`` traced into the graph
@@ -114,13 +217,17 @@ def tracing() -> AbstractContextManager[None]:
 
 
 def compile_model_step(
-    model: Any, step: Callable[..., _Output], mode: CompileMode
+    model: Any, step: Callable[..., _Output], mode: CompileMode, critic_parameters: "Parameters"
 ) -> tuple[list["AdamPlan"], Callable[..., _Output]]:
     """
     A model's gradient step compiled (:func:`compile_step`), and the Adam plans of its optimizers: the actor's, the
     critic's and, when the entropy coefficient is learned, its own (in this order; ``model.actor.optimizer``,
     ``model.critic.optimizer``, ``model.ent_coef_optimizer``). ``"reduce-overhead"`` needs a CUDA device; gSDE
     (``use_sde``) is refused.
+
+    :param critic_parameters: the critic optimizer's parameters in its order, read through ``model.critic``'s modules
+        (:class:`AdamPlan`); the actor's are ``model.actor.parameters()``, the entropy coefficient's
+        ``[model.log_ent_coef]``
     """
     if mode == "reduce-overhead" and model.device.type != "cuda":
         raise ValueError(
@@ -132,10 +239,17 @@ def compile_model_step(
             "compile_update does not support use_sde=True: gSDE's exploration matrix is drawn outside the gradient "
             "step with a graph of its own, which the compiled step cannot differentiate through; use one or the other"
         )
-    plans = [AdamPlan(model.actor.optimizer, "actor"), AdamPlan(model.critic.optimizer, "critic")]
+    plans = [
+        AdamPlan(model.actor.optimizer, "actor", lambda: list(model.actor.parameters())),
+        AdamPlan(model.critic.optimizer, "critic", critic_parameters),
+    ]
     if model.ent_coef_optimizer is not None:
-        plans.append(AdamPlan(model.ent_coef_optimizer, "entropy coefficient"))
+        plans.append(AdamPlan(model.ent_coef_optimizer, "entropy coefficient", lambda: [model.log_ent_coef]))
     return plans, compile_step(step, mode)
+
+
+#: A function that gives an optimizer's parameters, in its order, from the modules that hold them
+Parameters = Callable[[], list[th.Tensor]]
 
 
 class AdamPlan:
@@ -144,11 +258,17 @@ class AdamPlan:
     parameters in group order, each one's group, and each group's betas, eps and weight decay. The learning rates are
     not part of the plan (they change without recompiling: :func:`masked_adam` takes them as tensors).
 
+    A compiled step reads neither the optimizer nor its parameter list: Dynamo would guard on every value of the
+    optimizer's groups (a scheduled learning rate would recompile the step at every ``train()`` call), and on every
+    parameter a second time, in Python, as the same object it reaches through the modules. The step takes the
+    parameters from ``parameters``, which reads them through the modules, as the forward pass does.
+
     :param optimizer: the optimizer (``amsgrad``, ``maximize`` and ``differentiable`` are not supported)
     :param name: what it optimizes, for error messages
+    :param parameters: the optimizer's parameters, in its order, through the modules that hold them
     """
 
-    def __init__(self, optimizer: th.optim.Optimizer, name: str):
+    def __init__(self, optimizer: th.optim.Optimizer, name: str, parameters: Parameters):
         if type(optimizer) not in (th.optim.Adam, th.optim.AdamW):
             raise ValueError(
                 f"compile_update needs the {name} optimizer to be th.optim.Adam or th.optim.AdamW, got "
@@ -159,6 +279,14 @@ class AdamPlan:
                 raise ValueError(f"compile_update does not support Adam's {option}=True ({name} optimizer)")
         self.optimizer = optimizer
         self.params: list[th.Tensor] = [param for group in optimizer.param_groups for param in group["params"]]
+        held = parameters()
+        if [id(param) for param in held] != [id(param) for param in self.params]:
+            raise ValueError(
+                f"compile_update needs the {name} optimizer to hold the parameters of its modules, each once and in "
+                f"their order ({len(self.params)} in the optimizer, {len(held)} in the modules, not the same tensors "
+                "in the same order): build the optimizer from the modules' parameters, or use compile_update=False"
+            )
+        self.parameters = parameters
         self.group_of: list[int] = [index for index, group in enumerate(optimizer.param_groups) for _ in group["params"]]
         self.settings: list[tuple[float, float, float, float, bool]] = [
             (*group["betas"], group["eps"], group["weight_decay"], bool(group.get("decoupled_weight_decay", False)))
@@ -215,7 +343,7 @@ def masked_adam(
     bit; computed in float32, the bias corrections alone made the compiled path drift from the eager one
     (``benchmarks/compiled_vs_eager.py``).
 
-    :param grads: the gradient of each parameter, in ``plan.params`` order
+    :param grads: the gradient of each parameter, in the plan's order
     :param state: ``plan.state()``
     :param learning_rates: each parameter group's learning rate, a scalar tensor (:func:`learning_rates_tensor`)
     :param apply: a boolean scalar tensor
@@ -224,7 +352,8 @@ def masked_adam(
         # Each parameter's step size and second-moment correction, stacked into one tensor first: Inductor then
         # computes each once, where it would otherwise recompute the float64 powers in every vector of the update
         scalars = []
-        for param, group, (step, _, _) in zip(plan.params, plan.group_of, state, strict=True):
+        params = plan.parameters()
+        for param, group, (step, _, _) in zip(params, plan.group_of, state, strict=True):
             beta1, beta2 = plan.settings[group][:2]
             dtype = scalar_dtype(param.device)
             new_step = (step + 1).to(dtype)
@@ -236,7 +365,7 @@ def masked_adam(
             ]
         corrections = th.stack(scalars)
         for index, (param, grad, group, (step, exp_avg, exp_avg_sq)) in enumerate(
-            zip(plan.params, grads, plan.group_of, state, strict=True)
+            zip(params, grads, plan.group_of, state, strict=True)
         ):
             beta1, beta2, eps, weight_decay, decoupled = plan.settings[group]
             step_size, bias_correction2_sqrt = corrections[2 * index], corrections[2 * index + 1]

@@ -3,9 +3,11 @@ SERASAC's ``compile_update``: its gradient step as one ``torch.compile`` graph. 
 :mod:`sb3_sera.sera.update` in the eager ``train()``'s order; it differs only in how updates are applied: gradients
 from ``torch.autograd.grad``, Adam and the target update masked by whether every value so far was finite
 (:func:`~sb3_sera.common.compiled.masked_adam`), and nothing read from the device until the ``train()`` call ends.
-The actor's value is :func:`~sb3_sera.sera.update.actor_value`, as in ``train()``, on a CPU; on a GPU it is
+The actor's value is :func:`~sb3_sera.sera.update.actor_value_linearized` on a CPU (``train()``'s
+:func:`~sb3_sera.sera.update.actor_value` without its second forward pass of the selected critic); on a GPU it is
 :func:`~sb3_sera.sera.update.actor_value_gathered` (static shapes: no synchronisation, and CUDA graphs can replay the
-step).
+step). The step reaches every parameter through the model's modules, never through an optimizer
+(:class:`~sb3_sera.common.compiled.AdamPlan`).
 """
 
 from functools import partial
@@ -16,7 +18,7 @@ from stable_baselines3.common.type_aliases import ReplayBufferSamples
 
 from sb3_sera.common.compiled import all_finite, masked_adam, masked_polyak, read_steps, run_steps
 from sb3_sera.common.finite import gradient_step_context
-from sb3_sera.sera.update import actor_value, actor_value_gathered, diagnostics
+from sb3_sera.sera.update import actor_value_gathered, actor_value_linearized, diagnostics
 
 #: What a compiled gradient step checks, in the order in which a cause precedes its consequences
 COMPILED_QUANTITIES = (
@@ -74,7 +76,7 @@ def gradient_step(
     ent_coef = model._entropy_coefficient()
     critic = model._critic_update(replay_data, ent_coef)
     target_entropy, ent_coef_loss = model._entropy_target(critic.current_q_values, log_prob)
-    critic_grads = th.autograd.grad(critic.critic_loss, critic_plan.params)
+    critic_grads = th.autograd.grad(critic.critic_loss, critic_plan.parameters())
     finite = [
         th.isfinite(ent_coef).all(),
         th.isfinite(critic.target_q_values).all(),
@@ -85,7 +87,7 @@ def gradient_step(
     ]
     entropy_grads: tuple[th.Tensor, ...] = ()
     if ent_coef_loss is not None:
-        entropy_grads = th.autograd.grad(ent_coef_loss, model._adam_plans[2].params)
+        entropy_grads = th.autograd.grad(ent_coef_loss, model._adam_plans[2].parameters())
     finite.append(all_finite(entropy_grads) if entropy_grads else healthy)
     apply = healthy & th.stack(finite).all()
     # Step size, entropy coefficient, critics: in train()'s order, each where every value so far was finite
@@ -97,18 +99,20 @@ def gradient_step(
         masked_adam(model._adam_plans[2], entropy_grads, states[2], [learning_rates[1]], apply)
     group_rates = [
         scheduled if group["critic_index"] is None else critic_rates[group["critic_index"]]
-        for group in model.critic.optimizer.param_groups
+        for group in model.critic.parameter_groups()
     ]
     masked_adam(critic_plan, critic_grads, states[1], group_rates, apply)
     # The actor against the updated critics
-    value = actor_value if model.device.type == "cpu" else actor_value_gathered
+    value = actor_value_linearized if model.device.type == "cpu" else actor_value_gathered
     q_value = value(model.critic, replay_data.observations, actions_pi, model.actor_aggregation)
     actor_loss = (ent_coef * log_prob - q_value).mean()
-    actor_grads = th.autograd.grad(actor_loss, actor_plan.params)
+    actor_grads = th.autograd.grad(actor_loss, actor_plan.parameters())
     finite += [th.isfinite(actor_loss), all_finite(actor_grads)]
     apply_actor = apply & finite[-2] & finite[-1]
     masked_adam(actor_plan, actor_grads, states[0], [learning_rates[0]], apply_actor)
-    masked_polyak(model._critic_target_parameters, model._critic_parameters, model.tau, apply_actor & target_update)
+    masked_polyak(
+        list(model.critic_target.parameters()), list(model.critic.parameters()), model.tau, apply_actor & target_update
+    )
     masked_polyak(model.batch_norm_stats_target, model.batch_norm_stats, 1.0, apply_actor & target_update)
     logged = [ent_coef.reshape(()), critic.critic_loss.detach(), actor_loss.detach()]
     if ent_coef_loss is not None:

@@ -289,7 +289,10 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         self._compiled_step: Callable[..., compiled_step.CompiledStepOutput] | None = None
         if self.compile_update:
             self._adam_plans, self._compiled_step = compile_model_step(
-                self, partial(compiled_step.gradient_step, self), self.compile_update
+                self,
+                partial(compiled_step.gradient_step, self),
+                self.compile_update,
+                lambda: [param for group in self.critic.parameter_groups() for param in group["params"]],
             )
 
     def _update_critic_learning_rates(self, rates: list[float] | None) -> list[float]:

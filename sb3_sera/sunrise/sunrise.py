@@ -269,9 +269,9 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
             self.ent_coef_tensor = th.full((self.n_members,), float(self.ent_coef), device=self.device)
         self._compiled_step: Any = None
         if self.compile_update:
-            self._adam_plans, self._compiled_step = compile_model_step(self, self._gradient_step_graph, self.compile_update)
-            self._critic_parameters = list(self.critic.parameters())
-            self._critic_target_parameters = list(self.critic_target.parameters())
+            self._adam_plans, self._compiled_step = compile_model_step(
+                self, self._gradient_step_graph, self.compile_update, lambda: list(self.critic.parameters())
+            )
 
     def _setup_learn(
         self,
@@ -465,10 +465,10 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
         """
         actor_plan, critic_plan = self._adam_plans[:2]
         losses = self._losses(replay_data)
-        critic_grads = th.autograd.grad(losses.critic_loss, critic_plan.params)
+        critic_grads = th.autograd.grad(losses.critic_loss, critic_plan.parameters())
         entropy_grads: tuple[th.Tensor, ...] = ()
         if losses.ent_coef_loss is not None:
-            entropy_grads = th.autograd.grad(losses.ent_coef_loss, self._adam_plans[2].params)
+            entropy_grads = th.autograd.grad(losses.ent_coef_loss, self._adam_plans[2].parameters())
         finite = [
             th.isfinite(losses.ent_coef).all(),
             th.isfinite(losses.target_q_values).all(),
@@ -482,13 +482,13 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
             masked_adam(self._adam_plans[2], entropy_grads, states[2], [learning_rates[2]], apply)
         masked_adam(critic_plan, critic_grads, states[1], [learning_rates[1]] * len(critic_plan.settings), apply)
         actor_loss = self._actor_loss(replay_data.observations, losses)
-        actor_grads = th.autograd.grad(actor_loss, actor_plan.params)
+        actor_grads = th.autograd.grad(actor_loss, actor_plan.parameters())
         finite += [th.isfinite(actor_loss), all_finite(actor_grads)]
         apply_actor = apply & finite[-2] & finite[-1]
-        masked_adam(
-            actor_plan, actor_grads, states[0], [learning_rates[0]] * len(self.actor.optimizer.param_groups), apply_actor
+        masked_adam(actor_plan, actor_grads, states[0], [learning_rates[0]] * len(actor_plan.settings), apply_actor)
+        masked_polyak(
+            list(self.critic_target.parameters()), list(self.critic.parameters()), self.tau, apply_actor & target_update
         )
-        masked_polyak(self._critic_target_parameters, self._critic_parameters, self.tau, apply_actor & target_update)
         return CompiledStepOutput(
             healthy=apply_actor, finite=th.stack(finite), logged=th.stack(list(self._logged(losses, actor_loss).values()))
         )
@@ -515,8 +515,6 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
             "critic_target",
             "_compiled_step",
             "_adam_plans",
-            "_critic_parameters",
-            "_critic_target_parameters",
         ]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:

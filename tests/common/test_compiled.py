@@ -4,7 +4,17 @@ import pytest
 import torch as th
 from torch.fx.experimental.proxy_tensor import make_fx
 
-from sb3_sera.common.compiled import AdamPlan, BiasIntoPointwise, all_finite, masked_adam, masked_polyak
+from sb3_sera.common import compiled
+from sb3_sera.common.compiled import (
+    AdamPlan,
+    BiasIntoPointwise,
+    GraphPasses,
+    TransposeNarrowProducts,
+    all_finite,
+    masked_adam,
+    masked_polyak,
+    transposed_product_is_faster,
+)
 
 
 @pytest.mark.parametrize(
@@ -20,7 +30,7 @@ def test_masked_adam_is_torchs_adam_where_applied_and_nothing_elsewhere(optimize
     our_optimizer.add_param_group({"params": [ours[1]], "lr": 0.02})
     torch_optimizer.param_groups[0]["params"] = reference[:1]
     torch_optimizer.add_param_group({"params": reference[1:], "lr": 0.02})
-    plan = AdamPlan(our_optimizer, "test")
+    plan = AdamPlan(our_optimizer, "test", lambda: ours)
     for step in range(4):
         grads = [th.randn_like(value) for value in reference]
         apply = th.tensor(step != 2)  # the third step is masked
@@ -55,11 +65,15 @@ def test_masked_polyak_and_all_finite():
     [
         (lambda params: th.optim.SGD(params, lr=0.1), "th.optim.Adam or th.optim.AdamW, got SGD"),
         (lambda params: th.optim.Adam(params, amsgrad=True), "amsgrad"),
+        # The modules' parameters in another order than the optimizer's
+        (lambda params: th.optim.Adam(params[::-1]), r"2 in the optimizer, 2 in the modules, not the same tensors"),
+        (lambda params: th.optim.Adam(params[:1]), r"1 in the optimizer, 2 in the modules"),
     ],
 )
 def test_optimizers_a_masked_adam_cannot_follow_are_refused(optimizer, message):
+    params = [th.nn.Parameter(th.zeros(1)), th.nn.Parameter(th.ones(2))]
     with pytest.raises(ValueError, match=message):
-        AdamPlan(optimizer([th.nn.Parameter(th.zeros(1))]), "test")
+        AdamPlan(optimizer(params), "test", lambda: params)
 
 
 def test_bias_into_pointwise_splits_only_the_linear_layers_whose_uses_are_pointwise():
@@ -83,3 +97,67 @@ def test_bias_into_pointwise_splits_only_the_linear_layers_whose_uses_are_pointw
     # A uuid, stable across instances: without one Inductor would not cache a graph compiled with the pass
     uuid = BiasIntoPointwise().uuid()
     assert isinstance(uuid, bytes) and uuid and uuid == BiasIntoPointwise().uuid()
+
+
+def test_transpose_narrow_products_rewrites_only_narrow_outputs_the_timing_favours():
+    def gradients(grad_out, inputs, wide):
+        # A first layer's weight gradient (5 columns), a product with a wide output (40 columns), one used by the output
+        narrow = grad_out.T @ inputs
+        return (narrow * 2, grad_out.T @ wide, (inputs.T @ grad_out).sum())
+
+    th.manual_seed(0)
+    inputs = (th.randn(64, 16), th.randn(64, 5), th.randn(64, 40))
+    asked = []
+
+    def faster(left: th.Tensor, right: th.Tensor) -> bool:
+        asked.append((tuple(left.shape), tuple(right.shape)))
+        return True
+
+    graph_module = make_fx(gradients, tracing_mode="fake")(*inputs)
+    TransposeNarrowProducts(faster)(graph_module.graph)
+    graph_module.recompile()
+    # Only the narrow product was timed and rewritten: 16 x 5 from (16, 64) @ (64, 5)
+    assert asked == [((16, 64), (64, 5))]
+    products = [node for node in graph_module.graph.nodes if node.target is th.ops.aten.mm.default]
+    assert [tuple(node.meta["val"].shape) for node in products] == [(5, 16), (16, 40), (5, 16)]
+    for got, expected in zip(graph_module(*inputs), gradients(*inputs), strict=True):
+        th.testing.assert_close(got, expected)
+    # Where the timing finds the transposed order slower, nothing changes
+    graph_module = make_fx(gradients, tracing_mode="fake")(*inputs)
+    before = [node.target for node in graph_module.graph.nodes]
+    TransposeNarrowProducts(lambda left, right: False)(graph_module.graph)
+    assert [node.target for node in graph_module.graph.nodes] == before
+
+
+def test_the_timing_answers_once_per_layout_and_the_passes_have_a_uuid(monkeypatch):
+    left, right = th.randn(32, 64).T, th.randn(32, 4)
+    first = transposed_product_is_faster(left, right)
+    assert isinstance(first, bool)
+    # The same sizes, strides and dtype again: the answer kept, nothing timed
+    monkeypatch.setattr("time.perf_counter", lambda: pytest.fail("timed again"))
+    assert transposed_product_is_faster(th.zeros(32, 64).T, th.zeros(32, 4)) is first
+    passes = GraphPasses(BiasIntoPointwise(), TransposeNarrowProducts())
+    assert passes.uuid() == BiasIntoPointwise().uuid() + TransposeNarrowProducts().uuid() and passes.uuid()
+
+
+@pytest.mark.parametrize(("transposed_seconds", "expected"), [(0.79, True), (0.81, False)])
+def test_the_timing_takes_the_transposed_order_only_when_the_product_saves_a_fifth(monkeypatch, transposed_seconds, expected):
+    # A fake clock that each product advances: 1 s for left @ right, transposed_seconds for the transposed order.
+    # The views are made before the clock runs: a view's cost is not the library's
+    clock = [0.0]
+    left, right = th.randn(32, 64).T, th.randn(32, 4)
+
+    def product(first: th.Tensor, second: th.Tensor) -> th.Tensor:
+        clock[0] += 1.0 if first.shape == left.shape else transposed_seconds
+        return th.empty(first.shape[0], second.shape[1])
+
+    def view(tensor: th.Tensor) -> th.Tensor:
+        clock[0] += 1.0
+        return tensor.permute(1, 0)
+
+    monkeypatch.setattr(compiled, "_transposed_is_faster", {})
+    monkeypatch.setattr(th, "mm", product)
+    monkeypatch.setattr(th.Tensor, "T", property(view))
+    monkeypatch.setattr("time.perf_counter", lambda: clock[0])
+    assert compiled.TRANSPOSE_MIN_SAVING == 0.2
+    assert transposed_product_is_faster(left, right) is expected

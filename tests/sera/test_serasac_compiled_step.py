@@ -15,7 +15,7 @@ from stable_baselines3.common.utils import set_random_seed
 from sb3_sera import SERASAC
 from sb3_sera.common.compiled import count_graph_breaks
 from sb3_sera.sera.compiled_step import gradient_step
-from tests.helpers import assert_close_state, assert_same_state, snapshot
+from tests.helpers import assert_close_state, assert_same_state, assert_schedule_does_not_recompile, snapshot
 
 #: One configuration for every compiled model of the file: the compiled graph is built once, then found in the cache
 SETTINGS: dict[str, Any] = dict(
@@ -149,6 +149,15 @@ def test_the_compiled_step_follows_the_critic_lr_max_schedule():
         assert model.logger.name_to_value["train/critic_lr_0"] == pytest.approx(
             1e-3 * progress * (0.2 + 0.8 * kappa), rel=1e-5
         )
+
+
+def test_learning_rate_schedules_do_not_recompile_the_step():
+    # The actor's and the critics' scheduled rates change with the progress, the critics' adaptive ones at every step
+    def rate(progress: float) -> float:
+        return 1e-3 * progress
+
+    model = build(True, learning_rate=rate, critic_lr_max=lambda progress: 5e-4 * progress)
+    assert_schedule_does_not_recompile(model, SETTINGS["batch_size"], rate)
 
 
 def test_the_multi_agent_step_compiles_and_equals_the_eager_one():

@@ -8,16 +8,16 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.utils import set_random_seed
 
 from sb3_sera import SUNRISE
-from tests.helpers import assert_close_state, assert_same_state, snapshot
+from tests.helpers import assert_close_state, assert_same_state, assert_schedule_does_not_recompile, snapshot
 
 SETTINGS: dict[str, Any] = dict(
     learning_starts=64, batch_size=32, buffer_size=1_000, n_members=3, policy_kwargs=dict(net_arch=[16])
 )
 
 
-def build(compile_update: Any) -> SUNRISE:
+def build(compile_update: Any, **kwargs: Any) -> SUNRISE:
     """A SUNRISE that collected ``learning_starts`` transitions and made one gradient step (built and run in turn)."""
-    model = SUNRISE("MlpPolicy", "Pendulum-v1", seed=0, compile_update=compile_update, **SETTINGS)
+    model = SUNRISE("MlpPolicy", "Pendulum-v1", seed=0, compile_update=compile_update, **SETTINGS, **kwargs)
     model.learn(SETTINGS["learning_starts"] + 1)
     return model
 
@@ -57,3 +57,10 @@ def test_a_non_finite_value_stops_the_compiled_step_and_changes_nothing():
 def test_reduce_overhead_needs_a_gpu():
     with pytest.raises(ValueError, match="needs device='cuda'"):
         SUNRISE("MlpPolicy", "Pendulum-v1", device="cpu", compile_update="reduce-overhead")
+
+
+def test_a_learning_rate_schedule_does_not_recompile_the_step():
+    def rate(progress: float) -> float:
+        return 1e-3 * progress
+
+    assert_schedule_does_not_recompile(build(True, learning_rate=rate), SETTINGS["batch_size"], rate)
