@@ -158,18 +158,26 @@ class HeterogeneousCritics(BaseModel):
         """All critics' values from the input of :meth:`q_input`, shape ``(batch_size, n_critics)``."""
         return th.cat([q_net(q_input) for q_net in self.q_networks], dim=1)
 
+    def selected_rows(self, critic_index: th.Tensor) -> list[th.Tensor]:
+        """
+        Each critic's rows: the samples ``critic_index`` selects it for, found on the device without reading it (a
+        compiled gradient step traces this too, the sizes data-dependent).
+
+        :param critic_index: which critic for each sample, shape ``(batch_size,)``
+        """
+        return [(critic_index == idx).nonzero().squeeze(1) for idx in range(self.n_critics)]
+
     def selected_q_values(self, q_input: th.Tensor, critic_index: th.Tensor) -> th.Tensor:
         """
         The value of one critic per sample, ``Q_{index_j}(x_j)``, shape ``(batch_size, 1)``, differentiable.
 
-        Each critic runs only on the samples it was selected for, so the cost (and the backward pass) is about
-        that of a single critic on the whole batch instead of all of them. The rows are found on the device, without
-        reading it: the compiled gradient step traces this function too, its sizes data-dependent.
+        Each critic runs only on the samples it was selected for (:meth:`selected_rows`), so the cost (and the
+        backward pass) is about that of a single critic on the whole batch instead of all of them.
 
         :param q_input: critic input from :meth:`q_input`, shape ``(batch_size, input_dim)``
         :param critic_index: which critic to use for each sample, shape ``(batch_size,)``
         """
-        rows = [(critic_index == idx).nonzero().squeeze(1) for idx in range(self.n_critics)]
+        rows = self.selected_rows(critic_index)
         values = [q_net(q_input[selected]) for q_net, selected in zip(self.q_networks, rows, strict=True)]
         return th.zeros_like(q_input[:, :1]).index_copy(0, th.cat(rows), th.cat(values))
 
@@ -213,11 +221,11 @@ class HeterogeneousCritics(BaseModel):
         The gradient of one critic per sample with respect to the action, ``dQ_{index_j}(x_j) / da_j``, shape
         ``(batch_size, action_dim)``, from the hidden activations of :meth:`q_values_and_hidden` (the action is the
         last ``action_dim`` entries of the critic input). Each critic's backward pass runs only on the samples it was
-        selected for, as in :meth:`selected_q_values`, without running the critic forward again.
+        selected for (:meth:`selected_rows`), as in :meth:`selected_q_values`, without running the critic forward again.
 
         :param critic_index: which critic for each sample, shape ``(batch_size,)``
         """
-        rows = [(critic_index == idx).nonzero().squeeze(1) for idx in range(self.n_critics)]
+        rows = self.selected_rows(critic_index)
         gradients = []
         for critic_layers, activations, selected in zip(layers, hidden, rows, strict=True):
             gradient = critic_layers[-1].weight.expand(selected.shape[0], -1)
