@@ -71,7 +71,15 @@ def compile_step(step: Callable[..., _Output], mode: CompileMode) -> Callable[..
     return run
 
 
-class BiasIntoPointwise(CustomGraphPass):
+class SourcePass(CustomGraphPass):
+    """An Inductor pass of this file, identified to Inductor's cache by the file's hash."""
+
+    def uuid(self) -> bytes:
+        """This file's hash: Inductor's cache keeps a graph compiled with this pass until the pass changes."""
+        return get_hash_for_files((__file__,))
+
+
+class BiasIntoPointwise(SourcePass):
     """
     An Inductor pass (after the gradients are traced) that computes a linear layer's ``addmm(bias, x, w)`` as
     ``mm(x, w) + bias`` where every use of its output is pointwise, such as the activation after a hidden layer: the
@@ -100,10 +108,6 @@ class BiasIntoPointwise(CustomGraphPass):
             total.meta["val"] = node.meta["val"]
             node.replace_all_uses_with(total)
             graph.erase_node(node)
-
-    def uuid(self) -> bytes:
-        """This file's hash: Inductor's cache keeps a graph compiled with this pass until the pass changes."""
-        return get_hash_for_files((__file__,))
 
 
 #: The least time a transposed product must save for :class:`TransposeNarrowProducts` to take it
@@ -143,7 +147,7 @@ def transposed_product_is_faster(left: th.Tensor, right: th.Tensor) -> bool:
     return _transposed_is_faster[key]
 
 
-class TransposeNarrowProducts(CustomGraphPass):
+class TransposeNarrowProducts(SourcePass):
     """
     An Inductor pass (after the gradients are traced) that computes a product ``left @ right`` whose output is narrow,
     2 to 32 columns and at least twice as many rows, as ``(right.T @ left.T).T`` where the library runs that order
@@ -186,10 +190,6 @@ class TransposeNarrowProducts(CustomGraphPass):
             total.meta["val"] = product.meta["val"].permute(1, 0)
             node.replace_all_uses_with(total)
             graph.erase_node(node)
-
-    def uuid(self) -> bytes:
-        """This file's hash (:meth:`BiasIntoPointwise.uuid`)."""
-        return get_hash_for_files((__file__,))
 
 
 class GraphPasses(CustomGraphPass):
