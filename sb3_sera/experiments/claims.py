@@ -64,6 +64,8 @@ MIN_RUNS = 3
 SERA = "serasac"
 #: Level of every test
 ALPHA = 0.05
+#: The family of a primary claim that names none
+PRIMARY_FAMILY = "paper"
 
 
 def load_diagnostics(run: RunResult) -> dict[str, np.ndarray] | None:
@@ -220,7 +222,20 @@ MEASURES: dict[str, Measure] = {
     "closest_pair": Measure(closest_pair, "closest pair, last evaluation", False),
 }
 #: The claim fields of a claims file, and which must be given
-CLAIM_FIELDS = ("id", "source", "task", "n_timesteps", "measure", "arm", "baseline", "direction", "primary")
+CLAIM_FIELDS = (
+    "id",
+    "source",
+    "task",
+    "n_timesteps",
+    "seeds",
+    "measure",
+    "arm",
+    "baseline",
+    "direction",
+    "primary",
+    "family",
+    "planned",
+)
 REQUIRED_FIELDS = ("id", "task", "n_timesteps", "measure", "arm", "baseline", "direction")
 DIRECTIONS = ("higher", "lower")
 
@@ -239,6 +254,16 @@ class Claim:
     primary: bool = False
     #: Where the paper makes the claim (a figure or table)
     source: str = ""
+    #: The first and last seed (both included) whose runs the claim reads; None: every seed
+    seeds: tuple[int, int] | None = None
+    #: The Holm family of a primary claim (each family adjusted on its own)
+    family: str = PRIMARY_FAMILY
+    #: Runs an arm the claim plans; with fewer it is interim and not decided (0: decided from MIN_RUNS on)
+    planned: int = 0
+
+    def reads(self, run: RunResult) -> bool:
+        """Whether the claim reads ``run`` (its seed within :attr:`seeds`)."""
+        return self.seeds is None or self.seeds[0] <= run.seed <= self.seeds[1]
 
 
 def load_claims(path: str | Path) -> list[Claim]:
@@ -266,6 +291,16 @@ def load_claims(path: str | Path) -> list[Claim]:
             raise ValueError(f"{where}: unknown measure {entry['measure']!r}; measures: {sorted(MEASURES)}")
         if entry["direction"] not in DIRECTIONS:
             raise ValueError(f"{where}: direction {entry['direction']!r} is not one of {list(DIRECTIONS)}")
+        seeds = entry.get("seeds")
+        if seeds is not None and not (
+            isinstance(seeds, list) and len(seeds) == 2 and all(isinstance(s, int) for s in seeds) and seeds[0] <= seeds[1]
+        ):
+            raise ValueError(f"{where}: seeds {seeds!r} is not [first, last], two integers with first <= last")
+        planned = entry.get("planned", 0)
+        if not isinstance(planned, int) or planned < 0:
+            raise ValueError(f"{where}: planned {planned!r} is not a number of runs (an integer >= 0)")
+        if "family" in entry and not entry.get("primary", False):
+            raise ValueError(f"{where}: a family is for primary claims (primary: true); exploratory claims have none")
         if entry["id"] in seen:
             raise ValueError(f"{where}: the id is declared twice")
         seen.add(entry["id"])
@@ -280,6 +315,9 @@ def load_claims(path: str | Path) -> list[Claim]:
                 direction=str(entry["direction"]),
                 primary=bool(entry.get("primary", False)),
                 source=str(entry.get("source", "")),
+                seeds=(seeds[0], seeds[1]) if seeds is not None else None,
+                family=str(entry.get("family", PRIMARY_FAMILY)),
+                planned=planned,
             )
         )
     return claims
@@ -378,14 +416,18 @@ def evaluate(claims: Sequence[Claim], groups: Sequence[Any], alpha: float = ALPH
         arm, baseline, note = _matched_groups(claim, groups)
         summary = MEASURES[claim.measure].summary
         values = [
-            np.array([v for v in map(summary, group.runs) if v is not None], dtype=float)
+            np.array([v for v in (summary(run) for run in group.runs if claim.reads(run)) if v is not None], dtype=float)
             if group is not None
             else np.array([])
             for group in (arm, baseline)
         ]
         result = ClaimResult(claim, values[0], values[1], note=note)
         if arm is not None:
-            if min(len(values[0]), len(values[1])) < MIN_RUNS:
+            if min(len(values[0]), len(values[1])) < claim.planned:
+                result.verdict = f"interim ({len(values[0])} and {len(values[1])} of {claim.planned} runs)"
+                if len(values[0]) and len(values[1]):
+                    result.difference = float(values[0].mean() - values[1].mean())
+            elif min(len(values[0]), len(values[1])) < MIN_RUNS:
                 result.verdict = f"too few runs (< {MIN_RUNS})"
                 if len(values[0]) and len(values[1]):
                     result.difference = float(values[0].mean() - values[1].mean())
@@ -393,11 +435,11 @@ def evaluate(claims: Sequence[Claim], groups: Sequence[Any], alpha: float = ALPH
                 result.difference, result.low, result.high = stats.welch_interval(values[0], values[1])
                 result.p_value = stats.permutation_p_value(values[0], values[1])
         results.append(result)
-    primary = [result for result in results if result.claim.primary]
-    adjusted = stats.holm_adjusted([1.0 if r.p_value is None else r.p_value for r in primary]) if primary else []
-    for result, p_adjusted in zip(primary, adjusted, strict=True):
-        if result.p_value is not None:
-            result.adjusted_p = p_adjusted
+    for family in families(results):
+        adjusted = stats.holm_adjusted([1.0 if r.p_value is None else r.p_value for r in family])
+        for result, p_adjusted in zip(family, adjusted, strict=True):
+            if result.p_value is not None:
+                result.adjusted_p = p_adjusted
     for result in results:
         p = result.adjusted_p if result.claim.primary else result.p_value
         if p is None or result.difference is None:
@@ -405,6 +447,15 @@ def evaluate(claims: Sequence[Claim], groups: Sequence[Any], alpha: float = ALPH
         claimed_side = result.difference < 0 if result.claim.direction == "lower" else result.difference > 0
         result.verdict = ("supported" if claimed_side else "contradicted") if p < alpha else "inconclusive"
     return results
+
+
+def families(results: Sequence[ClaimResult]) -> list[list[ClaimResult]]:
+    """The primary claims' results by Holm family, in the order the families are first declared."""
+    grouped: dict[str, list[ClaimResult]] = {}
+    for result in results:
+        if result.claim.primary:
+            grouped.setdefault(result.claim.family, []).append(result)
+    return list(grouped.values())
 
 
 def _format(value: float | None) -> str:
@@ -447,12 +498,19 @@ def claims_table(results: Sequence[ClaimResult], primary: bool) -> list[str]:
     return lines
 
 
-def claims_legend(n_primary: int) -> str:
-    """What the claims tables' columns and verdicts are."""
+def family_sizes(results: Sequence[ClaimResult]) -> dict[str, int]:
+    """How many primary claims each Holm family of ``results`` holds."""
+    return {family[0].claim.family: len(family) for family in families(results)}
+
+
+def claims_legend(sizes: dict[str, int]) -> str:
+    """What the claims tables' columns and verdicts are; ``sizes``: each primary family's number of claims."""
     family = (
-        f" The primary claims are one family of {n_primary}: their p-values are Holm-adjusted over it (a primary claim "
-        "not yet tested counts with p = 1) and their verdicts read the adjusted p."
-        if n_primary
+        " Primary claims are Holm-adjusted within their family ("
+        + ", ".join(f"'{name}': {size}" for name, size in sizes.items())
+        + " claims; a primary claim not yet tested counts with p = 1) and their verdicts read the adjusted p; a claim "
+        "with runs planned is interim, and not decided, until each arm has them."
+        if sizes
         else ""
     )
     return (
@@ -465,21 +523,23 @@ def claims_legend(n_primary: int) -> str:
     )
 
 
-def claims_section(results: Sequence[ClaimResult], n_primary: int = 0) -> list[str]:
-    """The primary claims' table, then the exploratory claims' (labelled so), and the legend."""
-    primary = [r for r in results if r.claim.primary]
+def claims_section(results: Sequence[ClaimResult], sizes: dict[str, int] | None = None) -> list[str]:
+    """
+    The primary claims' tables, one a Holm family, then the exploratory claims' (labelled so), and the legend;
+    ``sizes``: each family's number of claims (default: as many as ``results`` hold).
+    """
     exploratory = [r for r in results if not r.claim.primary]
     lines: list[str] = []
-    if primary:
+    for family in families(results):
         lines += [
-            "Primary claims (declared before the runs that decide them; Holm-adjusted):",
+            f"Primary claims, family '{family[0].claim.family}' (Holm-adjusted within the family):",
             "",
-            *claims_table(primary, True),
+            *claims_table(family, True),
             "",
         ]
     if exploratory:
         lines += ["Exploratory claims (not corrected for multiplicity):", "", *claims_table(exploratory, False), ""]
-    return [*lines, claims_legend(n_primary)] if lines else []
+    return [*lines, claims_legend(family_sizes(results) if sizes is None else sizes)] if lines else []
 
 
 def bias_lines(groups: Sequence[Any]) -> list[str]:

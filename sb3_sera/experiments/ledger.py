@@ -26,7 +26,15 @@ from typing import Any
 import numpy as np
 import yaml
 
-from sb3_sera.experiments.claims import Claim, ClaimResult, claims_section, default_claims, evaluate, load_claims
+from sb3_sera.experiments.claims import (
+    Claim,
+    ClaimResult,
+    claims_section,
+    default_claims,
+    evaluate,
+    family_sizes,
+    load_claims,
+)
 from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sb3_sera.experiments.identity import identity_lines, load_code_hashes
 from sb3_sera.experiments.records import NPZ_ERRORS, RESULT_FILE, RunResult, env_name, load_result, read_record, run_ids
@@ -245,9 +253,8 @@ def results_block(ledger: str | Path = LEDGER_DIR, reps: int = LEDGER_REPS) -> s
     groups = group_runs(runs)
     hashes = load_code_hashes(ledger)
     decided = _decided(ledger, groups)
-    n_primary = sum(result.claim.primary for result in decided)
-    if n_primary:
-        lines += [*claims_section([r for r in decided if r.claim.primary], n_primary), ""]
+    if family_sizes(decided):
+        lines += [*claims_section([r for r in decided if r.claim.primary]), ""]
     for (env_id, budget), section in _sections(runs).items():
         commits = sorted({_commit(run) for group in section for run in group.runs})
         lines += [
@@ -300,7 +307,7 @@ def readme_block(ledger: str | Path = LEDGER_DIR, docs: str = DOCS_DIR) -> str:
             "",
         ]
         if primary:
-            lines += [*claims_section(primary, len(primary)), ""]
+            lines += [*claims_section(primary), ""]
     lines += [
         f"Every table, claim and figure of the ledger: [{docs}/{RESULTS_PAGE}]({docs}/{RESULTS_PAGE}) and "
         f"[{docs}/report.md]({docs}/report.md).",

@@ -98,8 +98,8 @@ def test_declared_claims_are_one_holm_family_and_need_matched_settings(tmp_path)
     assert corr.p_value == pytest.approx(2 / 70) and corr.adjusted_p == pytest.approx(6 / 70)
     assert corr.verdict == auc.verdict == "inconclusive"
     assert later.verdict == "waiting for runs" and "no runs of serasac or sac" in later.note
-    lines = claims.claims_section(decided, n_primary=3)
-    assert lines[0].startswith("Primary claims") and "family of 3" in lines[-1]
+    lines = claims.claims_section(decided)
+    assert lines[0].startswith("Primary claims, family 'paper'") and "('paper': 3 claims;" in lines[-1]
     # A baseline trained with another learning_starts is no comparison: the claim says which setting differs
     for folder in (tmp_path / "sera_nolr").iterdir():
         config = folder / "HalfCheetah-v5" / "config.yml"
@@ -109,11 +109,58 @@ def test_declared_claims_are_one_holm_family_and_need_matched_settings(tmp_path)
     assert corr.note == "unmatched: learning_starts: serasac=100, sera_nolr=50"
 
 
+def test_seeds_families_and_planned_runs(tmp_path):
+    # Seeds 0-3 on one side of the difference, seeds 4-7 on the other
+    for seed in range(8):
+        sign = 1.0 if seed < 4 else -1.0
+        _claim_run(tmp_path, "serasac", seed, 0.5, [0.0, 0.0, 30.0 * sign + seed])
+        _claim_run(tmp_path, "sera_nolr", seed, 0.5, [0.0, 0.0, -30.0 * sign + seed])
+    declared = [
+        claims.Claim(
+            "early", "HalfCheetah-v5", 300, "final_return", "serasac", "sera_nolr", "higher", primary=True, seeds=(0, 3)
+        ),
+        claims.Claim("late", "HalfCheetah-v5", 300, "final_return", "serasac", "sera_nolr", "higher", seeds=(4, 7)),
+        claims.Claim("all", "HalfCheetah-v5", 300, "auc", "serasac", "sera_nolr", "higher", primary=True, family="b"),
+        claims.Claim("planned", "HalfCheetah-v5", 300, "final_return", "serasac", "sera_nolr", "higher", planned=5),
+    ]
+    early, late, every, planned = _decided(tmp_path, declared)[2]
+    # Final returns (mean of the three evaluations): seeds 0-3 at +10 + seed/3 against -10 + seed/3
+    assert len(early.arm_values) == len(late.arm_values) == 4 and len(every.arm_values) == 8
+    assert early.difference == pytest.approx(20.0) and late.difference == pytest.approx(-20.0)
+    # Two families of one claim: Holm leaves each p as it is
+    assert early.adjusted_p == pytest.approx(early.p_value) == pytest.approx(2 / 70)
+    assert every.adjusted_p == every.p_value and every.claim.family == "b"
+    assert (early.verdict, late.verdict) == ("supported", "contradicted")
+    # As many runs as planned or more: decided as any other claim
+    assert planned.p_value is not None and planned.verdict == "inconclusive"
+    lines = claims.claims_section([early, every])
+    assert lines[0] == "Primary claims, family 'paper' (Holm-adjusted within the family):"
+    assert "Primary claims, family 'b' (Holm-adjusted within the family):" in lines
+    assert "('paper': 1, 'b': 1 claims;" in lines[-1]
+    # Fewer runs than planned: interim, with the difference so far and no test
+    short = claims.Claim("short", "HalfCheetah-v5", 300, "final_return", "serasac", "sera_nolr", "higher", planned=9)
+    result = _decided(tmp_path, [short])[2][0]
+    assert result.verdict == "interim (8 and 8 of 9 runs)" and result.p_value is None
+    assert result.difference == pytest.approx(0.0)
+
+
 def test_the_ledger_declares_its_claims():
     declared = claims.load_claims(Path(__file__).parents[2] / "results" / "claims.yml")
-    assert sum(claim.primary for claim in declared) == 6
-    assert {claim.task for claim in declared if claim.primary} == {"sb3_sera/HalfCheetah-6x1-v0"}
-    assert all(claims.MEASURES[claim.measure].paper_units for claim in declared if claim.primary)
+    primary = [claim for claim in declared if claim.primary]
+    assert [claim.family for claim in primary].count("paper") == 6
+    assert {claim.task for claim in primary} == {"sb3_sera/HalfCheetah-6x1-v0"}
+    assert all(claims.MEASURES[claim.measure].paper_units for claim in primary)
+    # The confirmatory test of SERA's weighting: a family of its own, on the new seeds alone, 20 runs an arm planned
+    confirmatory = [claim for claim in primary if claim.family == "aggregation"]
+    assert [(c.arm, c.baseline, c.measure, c.seeds, c.planned) for c in confirmatory] == [
+        ("serasac", "ensemble_mean", "final_return", (10, 29), 20)
+    ]
+    # The claims declared for seeds 0-9 read none of the confirmatory runs; the pooled contrast is exploratory
+    later = {"ma-return-ensemble-mean-confirmatory", "ma-return-ensemble-mean-pooled"}
+    multiagent = [claim for claim in declared if claim.task == "sb3_sera/HalfCheetah-6x1-v0"]
+    assert {claim.seeds for claim in multiagent if claim.id not in later} == {(0, 9)}
+    pooled = next(claim for claim in declared if claim.id == "ma-return-ensemble-mean-pooled")
+    assert pooled.seeds == (0, 29) and not pooled.primary
 
 
 @pytest.mark.parametrize(
@@ -130,6 +177,45 @@ def test_the_ledger_declares_its_claims():
         (
             {"id": "a", "task": "T", "measure": "auc", "arm": "x", "baseline": "y", "direction": "higher", "primry": True},
             r"unknown field\(s\) \['primry'\], missing \['n_timesteps'\]",
+        ),
+        (
+            {
+                "id": "a",
+                "task": "T",
+                "n_timesteps": 1,
+                "measure": "auc",
+                "arm": "x",
+                "baseline": "y",
+                "direction": "higher",
+                "seeds": [3, 1],
+            },
+            r"seeds \[3, 1\] is not \[first, last\]",
+        ),
+        (
+            {
+                "id": "a",
+                "task": "T",
+                "n_timesteps": 1,
+                "measure": "auc",
+                "arm": "x",
+                "baseline": "y",
+                "direction": "higher",
+                "planned": -1,
+            },
+            "planned -1 is not a number of runs",
+        ),
+        (
+            {
+                "id": "a",
+                "task": "T",
+                "n_timesteps": 1,
+                "measure": "auc",
+                "arm": "x",
+                "baseline": "y",
+                "direction": "higher",
+                "family": "f",
+            },
+            "a family is for primary claims",
         ),
     ],
 )

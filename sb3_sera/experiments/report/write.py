@@ -9,7 +9,15 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from sb3_sera.experiments import stats
-from sb3_sera.experiments.claims import Claim, ClaimResult, bias_lines, claims_section, default_claims, evaluate
+from sb3_sera.experiments.claims import (
+    Claim,
+    ClaimResult,
+    bias_lines,
+    claims_section,
+    default_claims,
+    evaluate,
+    family_sizes,
+)
 from sb3_sera.experiments.identity import identity_lines
 from sb3_sera.experiments.records import RunResult, env_name
 from sb3_sera.experiments.report.aggregate import aggregate_section
@@ -64,14 +72,14 @@ def write_report(
     if sources:
         lines += [f"Runs read from: {', '.join(sources)}.", ""]
     decided = evaluate(claims if claims is not None else default_claims(all_groups), all_groups)
-    n_primary = sum(result.claim.primary for result in decided)
-    if n_primary:
-        lines += ["## Primary claims", "", *claims_section([r for r in decided if r.claim.primary], n_primary), ""]
+    sizes = family_sizes(decided)
+    if sizes:
+        lines += ["## Primary claims", "", *claims_section([r for r in decided if r.claim.primary], sizes), ""]
     for number, ((env_id, budget), groups) in enumerate(sections_by_key.items(), start=1):
         stem = f"{env_name(env_id)}_{budget}"
         if log is not None:
             log(f"report: section {number}/{len(sections_by_key)}, {env_id} at {budget:,} steps: table, claims, figures")
-        lines += section_text(groups, all_groups, section_claims(decided, env_id, budget), n_primary, code_hashes, reps)
+        lines += section_text(groups, all_groups, section_claims(decided, env_id, budget), sizes, code_hashes, reps)
         grid_notes = plot_curves(
             groups,
             attribute="returns",
@@ -126,14 +134,14 @@ def section_text(
     groups: Sequence[RunGroup],
     all_groups: Sequence[RunGroup],
     decided: Sequence[ClaimResult],
-    n_primary: int,
+    sizes: dict[str, int],
     code_hashes: dict[str, dict[str, str]] | None,
     reps: int,
 ) -> list[str]:
     """One section's Markdown before its figures: the table, the claims, the bias table, code identity and notes."""
     env_id, budget = groups[0].env_id, groups[0].n_timesteps
     lines = [f"## {env_id}, {budget:,} steps", "", *section_table(groups, reps), ""]
-    claims_lines = claims_section(decided, n_primary)
+    claims_lines = claims_section(decided, sizes)
     if claims_lines:
         lines += ["### The paper's claims", "", *claims_lines, ""]
     bias_table = bias_lines(groups)
