@@ -1,10 +1,12 @@
 """
 Compiled against eager: two SERASAC models, one with ``compile_update=True``, trained on the same fixed replay buffer
-(Pendulum-v1, 64 random transitions), the same batches and the same random draws, one gradient step per ``train()``
-call. Prints, per actor aggregation, the largest parameter difference after each of the chosen steps, and the first
-step at which it passes ``--bound`` with the parameter where it does.
+(Pendulum-v1, 64 random transitions), the same batches and the same random draws (every generator of the models'
+device reset before each step: numpy's, torch's CPU one and, on a GPU, the device's), one gradient step per
+``train()`` call. Prints, per actor aggregation, the largest parameter difference after each of the chosen steps,
+and the first step at which it passes ``--bound`` with the parameter where it does.
 
     OMP_NUM_THREADS=1 python benchmarks/compiled_vs_eager.py --steps 100
+    python benchmarks/compiled_vs_eager.py --device cuda --steps 100
     OMP_NUM_THREADS=1 python benchmarks/compiled_vs_eager.py --against eager-gathered   # no compilation
 
 ``--against eager-gathered`` compares the eager path with itself, its actor value taken as the compiled step takes
@@ -14,6 +16,7 @@ update, no ``torch.compile``).
 """
 
 import argparse
+import math
 from collections.abc import Callable
 from typing import Any
 from unittest import mock
@@ -31,10 +34,16 @@ from sb3_sera.sera.update import actor_value_gathered
 BATCH_SIZE, FILL = 32, 64
 
 
-def make_model(compile_update: bool, seed: int = 0, **kwargs: Any) -> SERASAC:
-    """A SERASAC model on Pendulum-v1 with a replay buffer of ``FILL`` seeded random transitions."""
+def make_model(compile_update: bool, seed: int = 0, device: str = "cpu", **kwargs: Any) -> SERASAC:
+    """A SERASAC model on Pendulum-v1 on ``device`` with a replay buffer of ``FILL`` seeded random transitions."""
     model = SERASAC(
-        "MlpPolicy", gym.make("Pendulum-v1"), batch_size=BATCH_SIZE, seed=seed, compile_update=compile_update, **kwargs
+        "MlpPolicy",
+        gym.make("Pendulum-v1"),
+        batch_size=BATCH_SIZE,
+        seed=seed,
+        compile_update=compile_update,
+        device=device,
+        **kwargs,
     )
     model.set_logger(configure(folder=None, format_strings=[]))
     assert model.replay_buffer is not None
@@ -66,12 +75,20 @@ def largest_difference(first: SERASAC, second: SERASAC) -> tuple[float, str]:
 
 
 def train_in_step(models: list[SERASAC], steps: int, on_step: Callable[[int], None]) -> None:
-    """One gradient step per ``train()`` call for each model, on the same batch and random draws."""
+    """
+    One gradient step per ``train()`` call for each model, on the same batch and random draws: numpy's generator
+    (the replay buffer's sampling), torch's CPU generator and, for models on a GPU, that device's generator, each set
+    back to the same state before every model's step.
+    """
+    devices = sorted({model.device for model in models if model.device.type == "cuda"}, key=str)
     for step in range(1, steps + 1):
         numpy_state, torch_state = np.random.get_state(), th.get_rng_state()
+        device_states = [th.cuda.get_rng_state(device) for device in devices]
         for model in models:
             np.random.set_state(numpy_state)
             th.set_rng_state(torch_state)
+            for device, state in zip(devices, device_states, strict=True):
+                th.cuda.set_rng_state(state, device)
             model.train(gradient_steps=1, batch_size=BATCH_SIZE)
         on_step(step)
 
@@ -86,27 +103,38 @@ def gathered(train: Callable[..., None]) -> Callable[..., None]:
     return run
 
 
-def compare(aggregation: str, against: str, steps: int, bound: float, report: list[int]) -> None:
-    eager = make_model(False, actor_aggregation=aggregation)
+def differences(
+    aggregation: str, against: str, steps: int, report: list[int], device: str = "cpu", bound: float = math.inf
+) -> dict[int, tuple[float, str]]:
+    """
+    The largest parameter difference between eager SERASAC and ``against`` (and the tensor where it is) after each
+    step of ``report``; with a finite ``bound``, also under the key 0 the first step past it and its difference.
+    """
+    eager = make_model(False, actor_aggregation=aggregation, device=device)
     if against == "step-uncompiled":
         with mock.patch.object(compiled, "compile_step", lambda step, mode: step):
-            other = make_model(True, actor_aggregation=aggregation)
+            other = make_model(True, actor_aggregation=aggregation, device=device)
     else:
-        other = make_model(against == "compiled", actor_aggregation=aggregation)
+        other = make_model(against == "compiled", actor_aggregation=aggregation, device=device)
     if against == "eager-gathered":
         other.train = gathered(other.train)  # type: ignore[method-assign]
-    first_over: list[tuple[int, float, str]] = []
-    row: list[str] = []
+    found: dict[int, tuple[float, str]] = {}
 
     def on_step(step: int) -> None:
         difference, name = largest_difference(eager, other)
-        if difference > bound and not first_over:
-            first_over.append((step, difference, name))
+        if difference > bound and 0 not in found:
+            found[0] = (float(step), name)
         if step in report:
-            row.append(f"{difference:.1e}")
+            found[step] = (difference, name)
 
     train_in_step([eager, other], steps, on_step)
-    passed = "never" if not first_over else f"step {first_over[0][0]} ({first_over[0][1]:.1e}, {first_over[0][2]})"
+    return found
+
+
+def compare(aggregation: str, against: str, steps: int, bound: float, report: list[int], device: str) -> None:
+    found = differences(aggregation, against, steps, report, device, bound)
+    row = [f"{found[step][0]:.1e}" for step in report]
+    passed = "never" if 0 not in found else f"step {found[0][0]:.0f} ({found[0][1]})"
     print(f"| {aggregation} | {' | '.join(row)} | {passed} |", flush=True)
 
 
@@ -116,6 +144,7 @@ def main() -> None:
     parser.add_argument("--against", choices=("compiled", "eager-gathered", "step-uncompiled"), default="compiled")
     parser.add_argument("--aggregations", nargs="+", default=["median", "mean", "min"])
     parser.add_argument("--bound", type=float, default=2e-5)
+    parser.add_argument("--device", default="cpu", help="the models' torch device, e.g. cuda")
     args = parser.parse_args()
     th.set_num_threads(1)
     report = [step for step in (1, 12, 16, 24, 40, 100, 200) if step <= args.steps]
@@ -123,7 +152,7 @@ def main() -> None:
     print(f"| actor aggregation | {' | '.join(str(step) for step in report)} | first above {args.bound:g} |")
     print(f"|---|{'---|' * len(report)}---|")
     for aggregation in args.aggregations:
-        compare(aggregation, args.against, args.steps, args.bound, report)
+        compare(aggregation, args.against, args.steps, args.bound, report, args.device)
 
 
 if __name__ == "__main__":

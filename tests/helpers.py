@@ -22,17 +22,21 @@ SMALL_CTDE = dict(learning_starts=50, batch_size=32, buffer_size=1_000)
 
 def snapshot(model: Any, optimizers: bool = False) -> dict[str, th.Tensor]:
     """
-    A copy of what a SAC-style model learns: its policy's state (actor, critics, targets), its step-size state where
-    it has one (SERASAC) and its entropy coefficient where it learns one; with ``optimizers``, the state of its actor,
-    critic and entropy coefficient optimizers too (Adam's moments and step counts).
+    A copy of what a SAC- or TD3-style model learns: its policy's state (actor, critics, targets), its step-size state
+    where it has one (SERASAC) and its entropy coefficient where it learns one; with ``optimizers``, the state of its
+    actor, critic and entropy coefficient optimizers too (Adam's moments and step counts).
     """
     state = {f"policy.{k}": v.clone() for k, v in model.policy.state_dict().items()}
     if getattr(model, "step_size", None) is not None:
         state.update({f"step_size.{k}": v.clone() for k, v in model.step_size.state_dict().items()})
-    if model.log_ent_coef is not None:
+    if getattr(model, "log_ent_coef", None) is not None:
         state["log_ent_coef"] = model.log_ent_coef.detach().clone()
     if optimizers:
-        named = {"actor": model.actor.optimizer, "critic": model.critic.optimizer, "ent_coef": model.ent_coef_optimizer}
+        named = {
+            "actor": model.actor.optimizer,
+            "critic": model.critic.optimizer,
+            "ent_coef": getattr(model, "ent_coef_optimizer", None),
+        }
         for name, optimizer in named.items():
             for index, param_state in ({} if optimizer is None else optimizer.state_dict()["state"]).items():
                 state.update({f"{name}.{index}.{key}": value.clone() for key, value in param_state.items()})

@@ -9,7 +9,9 @@ torch ``Adam``/``AdamW`` optimizer and keeps its state in the optimizer, in torc
 loads and continues eagerly as any other.
 """
 
+import logging
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from contextlib import AbstractContextManager
 from typing import Any, Literal, Protocol, TypeVar
@@ -55,20 +57,24 @@ def compile_step(step: Callable[..., _Output], mode: CompileMode) -> Callable[..
     a linear layer whose output only feeds pointwise operations adds its bias in them (:class:`BiasIntoPointwise`), and
     a product with a narrow output runs transposed where the library runs it faster so (:class:`TransposeNarrowProducts`).
     """
-    options: dict[str, str | int | bool | Callable[..., Any]] = {
-        "fallback_random": True,
-        "triton.cudagraphs": mode == "reduce-overhead",
-        "size_asserts": False,
-        "alignment_asserts": False,
-        "post_grad_custom_post_pass": GraphPasses(BiasIntoPointwise(), TransposeNarrowProducts()),
-    }
-    compiled = th.compile(step, fullgraph=True, dynamic=False, options=options)
+    compiled = th.compile(step, fullgraph=True, dynamic=False, options=step_options(mode))
 
     def run(*args: Any, **kwargs: Any) -> _Output:
         with tracing():
             return compiled(*args, **kwargs)
 
     return run
+
+
+def step_options(mode: CompileMode) -> dict[str, Any]:
+    """Inductor's options for a gradient step compiled with ``mode`` (:func:`compile_step`)."""
+    return {
+        "fallback_random": True,
+        "triton.cudagraphs": mode == "reduce-overhead",
+        "size_asserts": False,
+        "alignment_asserts": False,
+        "post_grad_custom_post_pass": GraphPasses(BiasIntoPointwise(), TransposeNarrowProducts()),
+    }
 
 
 class SourcePass(CustomGraphPass):
@@ -296,7 +302,9 @@ class AdamPlan:
     def state(self) -> list[tuple[th.Tensor, th.Tensor, th.Tensor]]:
         """
         Each parameter's ``(step, exp_avg, exp_avg_sq)`` from the optimizer (read outside the graph: loading a model
-        replaces them), created where missing as torch creates them, with ``step`` on the parameter's device.
+        replaces them), created where missing as torch creates them, with ``step`` on the parameter's device; they
+        and the parameters are marked as static addresses (``torch._dynamo.mark_static_address``, unguarded), which
+        CUDA graphs need of every tensor the step writes in place.
         """
         states = []
         for param in self.params:
@@ -306,6 +314,11 @@ class AdamPlan:
                 state["exp_avg"] = th.zeros_like(param, memory_format=th.preserve_format)
                 state["exp_avg_sq"] = th.zeros_like(param, memory_format=th.preserve_format)
             states.append((state["step"], state["exp_avg"], state["exp_avg_sq"]))
+        # Everything the step writes in place has a fixed address for CUDA graphs (cuda_graph_blockers): the states
+        # and the parameters no module holds (the entropy coefficient); unguarded, so a loaded model's new state
+        # tensors neither recompile the step nor are refused
+        for tensor in [*self.params, *(value for state in states for value in state)]:
+            th._dynamo.mark_static_address(tensor, guard=False)
         if any(param.device.type != "cpu" for param in self.params):
             # torch's own step (after loading without compile_update) accepts a device step when capturable
             for group in self.optimizer.param_groups:
@@ -417,6 +430,92 @@ def count_graph_breaks(model: Any, step: Callable[..., Any], batch: Any) -> tupl
     return explanation.graph_count, explanation.graph_break_count
 
 
+def cuda_graph_blockers(model: Any, step: Callable[..., Any], batch: Any) -> list[str]:
+    """
+    The inputs of ``model``'s compiled gradient step (``step``, its body, as for :func:`count_graph_breaks`) that
+    the step writes in place without a fixed address: each one makes Inductor skip CUDA graphs ("skipping cudagraphs
+    due to mutated inputs"), since a graph replays its writes to the addresses it recorded. Found on any device, a
+    CPU included: the step is compiled as :func:`compile_step` compiles it (without Inductor's caches, which would
+    skip the compilation looked at), run once with every update masked (the model is left as it was), and each
+    graph's mutated inputs are checked against its static ones as Inductor does before it records a CUDA graph
+    (``check_for_mutation_ignore_cuda_graph_managed_tensor``).
+
+    :return: the inputs by Dynamo's names for them (``l_states_0_1_2_``: the Adam state of plan 0, parameter 1,
+        entry 2), empty for a step CUDA graphs can replay
+    """
+    from torch._inductor.compile_fx import compile_fx, compile_fx_inner
+    from torch._inductor.cudagraph_utils import check_for_mutation_ignore_cuda_graph_managed_tensor
+
+    blockers: list[str] = []
+    names: list[str] = []
+
+    def inner(graph: th.fx.GraphModule, example_inputs: Sequence[Any], **kwargs: Any) -> Any:
+        compiled = compile_fx_inner(graph, example_inputs, **kwargs)
+        static = list(kwargs.get("static_input_idxs", ()))
+        mutated = compiled.mutated_input_idxs  # type: ignore[attr-defined]
+        with th._inductor.config.patch({"triton.cudagraph_trees": True}):
+            reason = check_for_mutation_ignore_cuda_graph_managed_tensor(graph, compiled.mutated_inputs, mutated, static)  # type: ignore[attr-defined]
+        if reason is not None:
+            placeholders = [node.name for node in graph.graph.nodes if node.op == "placeholder"]
+            # Dynamo's names where AOT autograd kept its inputs one for one (it does for a step without parameters
+            # that need a gradient outside the graph), else AOT's own
+            readable = names if len(names) == len(placeholders) else placeholders
+            blockers.extend(readable[index] for index in mutated if index not in set(static))
+        return compiled
+
+    def backend(graph: th.fx.GraphModule, example_inputs: Sequence[Any]) -> Any:
+        names[:] = [node.name for node in graph.graph.nodes if node.op == "placeholder"]
+        return compile_fx(graph, example_inputs, inner_compile=inner, config_patches=step_options(False))
+
+    compiled = th.compile(step, fullgraph=True, dynamic=False, backend=backend)
+    caches_off = th._inductor.config.patch(fx_graph_cache=False), th._functorch.config.patch(enable_autograd_cache=False)
+    with tracing(), caches_off[0], caches_off[1]:
+        compiled(
+            batch,
+            learning_rates=model._step_learning_rates(),
+            target_update=th.tensor(True, device=model.device),
+            healthy=th.tensor(False, device=model.device),
+            states=[plan.state() for plan in model._adam_plans],
+        )
+    return blockers
+
+
+class CUDAGraphSkipWarning(UserWarning):
+    """A step compiled for CUDA graphs (``compile_update="reduce-overhead"``) that Inductor runs without them."""
+
+
+def warn_if_cuda_graphs_skipped(skips_before: int, reasons: Sequence[str]) -> None:
+    """
+    Warn (:class:`CUDAGraphSkipWarning`, once per reason) where Inductor's count of skipped CUDA graphs
+    (``counters["inductor"]["cudagraph_skips"]``) rose above ``skips_before``: a user who asked for CUDA graphs is
+    told, with Inductor's reasons (``reasons``, its log lines since), rather than left to find out from the speed.
+    """
+    from torch._dynamo.utils import counters
+
+    skipped = counters["inductor"]["cudagraph_skips"] - skips_before
+    if skipped <= 0:
+        return
+    because = "; ".join(reasons) if reasons else "Inductor logged no reason (TORCH_LOGS=cudagraphs shows it)"
+    warnings.warn(
+        f"compile_update='reduce-overhead': Inductor skipped CUDA graphs for the compiled gradient step ({because}); "
+        "it runs compiled without them. sb3_sera.common.compiled.cuda_graph_blockers(model, step, batch) lists the "
+        "inputs the step writes without a fixed address; please report this with the reason",
+        CUDAGraphSkipWarning,
+        stacklevel=3,
+    )
+
+
+class _Lines(logging.Handler):
+    """A logging handler that keeps each record's message."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.lines: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.lines.append(" ".join(record.getMessage().split())[:500])
+
+
 def run_steps(model: Any, sample: Callable[[], Any], learning_rates: th.Tensor, gradient_steps: int) -> list[Any]:
     """
     Run ``model._compiled_step`` (its :func:`compile_model_step`) ``gradient_steps`` times, each on a batch from
@@ -434,20 +533,36 @@ def run_steps(model: Any, sample: Callable[[], Any], learning_rates: th.Tensor, 
     outputs = []
     for gradient_step in range(gradient_steps):
         batch = sample()
-        if cuda_graphs:
-            th.compiler.cudagraph_mark_step_begin()
-        output = model._compiled_step(
-            batch,
+        arguments = dict(
             learning_rates=learning_rates,
             target_update=due[target_update_due(model._n_updates, gradient_step, model.target_update_interval)],
             healthy=healthy,
             states=states,
         )
         if cuda_graphs:
-            output = _pytree.tree_map(th.clone, output)
+            th.compiler.cudagraph_mark_step_begin()
+            output = _pytree.tree_map(th.clone, _watching_cuda_graphs(model._compiled_step, batch, arguments))
+        else:
+            output = model._compiled_step(batch, **arguments)
         healthy = output.healthy
         outputs.append(output)
     return outputs
+
+
+def _watching_cuda_graphs(step: Callable[..., _Output], batch: Any, arguments: dict[str, Any]) -> _Output:
+    """``step(batch, **arguments)``, warning (:func:`warn_if_cuda_graphs_skipped`) if Inductor skipped CUDA graphs in it."""
+    from torch._dynamo.utils import counters
+    from torch._inductor.cudagraph_utils import cudagraphs_log
+
+    handler = _Lines()
+    cudagraphs_log.addHandler(handler)
+    skips_before = counters["inductor"]["cudagraph_skips"]
+    try:
+        output = step(batch, **arguments)
+    finally:
+        cudagraphs_log.removeHandler(handler)
+    warn_if_cuda_graphs_skipped(skips_before, handler.lines)
+    return output
 
 
 def read_steps(

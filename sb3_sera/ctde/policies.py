@@ -9,7 +9,7 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.base_class import BaseAlgorithm, maybe_make_env
-from stable_baselines3.common.policies import ActorCriticPolicy, BaseModel, BasePolicy
+from stable_baselines3.common.policies import ActorCriticPolicy, BasePolicy
 from stable_baselines3.common.preprocessing import get_flattened_obs_dim
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, FlattenExtractor, create_mlp
 from stable_baselines3.common.type_aliases import GymEnv, PyTorchObs, Schedule
@@ -21,6 +21,7 @@ from stable_baselines3.td3.policies import TD3Policy
 from torch import nn
 
 from sb3_sera.common.arguments import check_gymnasium_env
+from sb3_sera.ctde.actors import CTDEActor, StackedCTDEActor, check_shareable
 from sb3_sera.ctde.env import STATE_KEY, CTDEEnv
 
 
@@ -144,96 +145,6 @@ def check_policy_arguments(
     return dict(agent_action_dims)
 
 
-def _check_shareable(observation_space: spaces.Dict, agent_action_dims: dict[str, int], share: bool) -> None:
-    """Raise ``ValueError`` if one actor is to serve agents whose observation or action spaces differ."""
-    shapes = {agent: (observation_space[agent].shape, size) for agent, size in agent_action_dims.items()}
-    if share and len(set(shapes.values())) > 1:
-        raise ValueError(
-            "share_actor=True needs agents with equal observation and action spaces, got "
-            f"(observation shape, action size) {shapes}; pad the observations and add an agent indicator "
-            "(agent_indicator=True in gym.make of the sb3_sera ids or in CTDEEnv) or keep one "
-            "actor per agent"
-        )
-
-
-class CTDEActor(BaseModel):
-    """
-    One SB3 actor per agent, each reading only its agent's observation; the joint action is their concatenation
-    in agent order, and (SAC family) the joint log-probability the sum of theirs.
-
-    :param observation_space: the CTDE Dict observation space
-    :param action_space: the joint action space
-    :param agent_action_dims: the agents, in joint-action order, and their action sizes
-    :param agent_actor_class: SB3's actor of the algorithm (``sac.policies.Actor`` or ``td3.policies.Actor``)
-    :param agent_actor_kwargs: its keyword arguments, but for the spaces and the features extractor
-    :param share_parameters: one actor for all agents (their observation and action spaces must be equal)
-    """
-
-    def __init__(
-        self,
-        observation_space: spaces.Dict,
-        action_space: spaces.Box,
-        agent_action_dims: dict[str, int],
-        agent_actor_class: type[BasePolicy],
-        agent_actor_kwargs: dict[str, Any],
-        share_parameters: bool = False,
-    ):
-        super().__init__(observation_space, action_space)
-        self.agents = list(agent_action_dims)
-        self.agent_action_dims = dict(agent_action_dims)
-        self.share_parameters = share_parameters
-        _check_shareable(observation_space, agent_action_dims, share_parameters)
-        actors: dict[str, nn.Module] = {}
-        for agent in self.agents[:1] if share_parameters else self.agents:
-            box = self.agent_input_space(observation_space, agent)
-            actors[agent] = agent_actor_class(
-                **{
-                    **agent_actor_kwargs,
-                    "observation_space": box,
-                    "action_space": spaces.Box(-1.0, 1.0, (agent_action_dims[agent],), dtype=np.float32),
-                    "features_extractor": FlattenExtractor(box),
-                    "features_dim": get_flattened_obs_dim(box),
-                }
-            )
-        self.agent_actors = nn.ModuleDict(actors)
-
-    def agent_input_space(self, observation_space: spaces.Dict, agent: str) -> spaces.Box:
-        """What ``agent``'s actor reads: its own observation."""
-        return cast(spaces.Box, observation_space[agent])
-
-    def agent_input(self, obs: dict[str, th.Tensor], agent: str) -> th.Tensor:
-        """``agent``'s part of a batch of CTDE observations, as its actor reads it (see :meth:`agent_input_space`)."""
-        return obs[agent]
-
-    def agent_actor(self, agent: str) -> nn.Module:
-        """The network that acts for ``agent``."""
-        return self.agent_actors[self.agents[0] if self.share_parameters else agent]
-
-    def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
-        assert isinstance(obs, dict)
-        if self.agent_actor_is_stochastic:
-            return th.cat(
-                [self.agent_actor(agent)(self.agent_input(obs, agent), deterministic) for agent in self.agents], dim=1
-            )
-        return th.cat([self.agent_actor(agent)(self.agent_input(obs, agent)) for agent in self.agents], dim=1)
-
-    @property
-    def agent_actor_is_stochastic(self) -> bool:
-        return hasattr(self.agent_actor(self.agents[0]), "action_log_prob")
-
-    def action_log_prob(self, obs: PyTorchObs) -> tuple[th.Tensor, th.Tensor]:
-        """Joint action and ``log pi(a|o) = sum_m log pi_m(a_m|o_m)`` (SAC family)."""
-        assert isinstance(obs, dict)
-        pairs = [
-            cast(SACActor, self.agent_actor(agent)).action_log_prob(self.agent_input(obs, agent)) for agent in self.agents
-        ]
-        actions, log_probs = zip(*pairs, strict=True)
-        return th.cat(actions, dim=1), th.stack(log_probs, dim=0).sum(dim=0)
-
-    def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
-        return self(observation, deterministic)
-
-
 class CTDEPolicyMixin:
     """
     What the CTDE variants of SB3's off-policy policies add to them: per-agent actors (of ``agent_actor_class``)
@@ -242,8 +153,9 @@ class CTDEPolicyMixin:
     """
 
     agent_actor_class: type[BasePolicy]
-    #: The per-agent actors' container, and the centralized critics' features
-    ctde_actor_class: type[CTDEActor] = CTDEActor
+    #: The per-agent actors' container (SB3's SAC and TD3 actors stacked into one network), and the centralized
+    #: critics' features
+    ctde_actor_class: type[CTDEActor] = StackedCTDEActor
     critic_features_class: type[BaseFeaturesExtractor] = StateExtractor
     actor_kwargs: dict[str, Any]
     observation_space: spaces.Dict
@@ -282,6 +194,13 @@ class CTDEPolicyMixin:
             self.agent_actor_kwargs(),
             share_parameters=self.share_actor,
         ).to(self.device)
+
+    def _build(self, lr_schedule: Schedule) -> None:
+        super()._build(lr_schedule)  # type: ignore[misc]
+        actor = getattr(self, "actor", None)
+        if isinstance(actor, StackedCTDEActor):
+            # A model saved with one actor per agent loads its actor's Adam state stacked too
+            actor.optimizer.register_load_state_dict_pre_hook(actor.stack_optimizer_state)
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()  # type: ignore[misc]
@@ -403,7 +322,7 @@ class CTDEMlpExtractor(nn.Module):
         self.share_parameters = share_parameters
         self.obs_dims = [get_flattened_obs_dim(observation_space[agent]) for agent in self.agents]
         state_dim = get_flattened_obs_dim(observation_space[STATE_KEY])
-        _check_shareable(observation_space, agent_action_dims, share_parameters)
+        check_shareable(observation_space, agent_action_dims, share_parameters)
         self.agent_actors = nn.ModuleDict(
             {
                 agent: GaussianAgentActor(

@@ -29,6 +29,11 @@ TINY_PEERS = ["--env", "Pendulum-v1", "--learning-starts", "20", "--blocks", "1"
             ["--env", "sb3_sera/SimpleSpread-v0", "--learning-starts", "20", "--warmup-blocks", "0", *TINY_TIMING],
             "IET",
         ),
+        (
+            "multiagent_speed.py",
+            ["--ma-env", "sb3_sera/SimpleSpread-v0", *TINY_PEERS[:4], "--warmup-blocks", "0", *TINY_TIMING],
+            "SERASAC-MA-loop",
+        ),
         ("memory.py", ["--env", "Pendulum-v1", "--buffer-size", "1000", "--gradient-steps", "2"], "SERASAC"),
         (
             "checkpoint_cost.py",

@@ -1,0 +1,139 @@
+"""
+The GPU check (``benchmarks/device_check.sh`` installs the carried wheels and runs this): on one CUDA device, in one
+process, a table of
+
+- ``cudagraphs``: whether the compiled gradient steps with ``compile_update="reduce-overhead"`` replay as CUDA graphs:
+  Inductor's count of skipped graphs (``counters["inductor"]["cudagraph_skips"]``) after compiling and running them,
+  and any :class:`~sb3_sera.common.compiled.CUDAGraphSkipWarning` with its reason;
+- ``compiled vs eager``: the largest parameter difference between eager and compiled SERASAC on CUDA after 1, 40 and
+  100 gradient steps on the same batches and draws (``compiled_vs_eager.py``, every generator of the device reset);
+- ``learn()`` steps per second, interleaved: SB3 SAC, SERASAC eager, ``compile_update=True`` and
+  ``"reduce-overhead"``, SBX's SAC with five critics of [256, 256] where ``sbx`` imports, on ``--env``; SERASAC eager
+  and ``"reduce-overhead"`` and SB3-eager MASAC on ``--ma-env`` (the CTDE policy, the agents' actors stacked).
+
+Each rate is the median of ``--blocks`` blocks of ``--block-steps`` steps, with its ratio to SB3 SAC's rate (the
+single-agent rows) or to eager SERASAC's on the multi-agent task (the multi-agent rows). The defaults fit the lent
+machine's budget (about 6 minutes on an H200, the install included).
+
+    bash benchmarks/device_check.sh                       # the wheels in .whl/, see docs/guide/developer.md
+    python benchmarks/device_check.py --sections speed --blocks 5
+"""
+
+import argparse
+import importlib.util
+import time
+import warnings
+from collections.abc import Callable
+from typing import Any
+
+import compiled_vs_eager
+import gymnasium as gym
+import torch as th
+from stable_baselines3 import SAC
+from stable_baselines3.common.base_class import BaseAlgorithm
+from timing import interleaved_rates, median_iqr
+
+from sb3_sera import MASAC, SERASAC
+from sb3_sera.common.compiled import CUDAGraphSkipWarning
+from sb3_sera.common.mujoco_log import route_mujoco_warnings
+
+SECTIONS = ("cudagraphs", "equality", "speed")
+
+
+def single_agent_models(env_id: str) -> dict[str, Callable[[dict[str, Any]], BaseAlgorithm]]:
+    """The single-agent rows' constructors (SBX's where it is installed)."""
+    table: dict[str, Callable[[dict[str, Any]], BaseAlgorithm]] = {
+        "SB3 SAC eager": lambda kw: SAC("MlpPolicy", env_id, **kw),
+        "SERASAC eager": lambda kw: SERASAC("MlpPolicy", env_id, **kw),
+        "SERASAC compile_update=True": lambda kw: SERASAC("MlpPolicy", env_id, compile_update=True, **kw),
+        "SERASAC reduce-overhead": lambda kw: SERASAC("MlpPolicy", env_id, compile_update="reduce-overhead", **kw),
+    }
+    if importlib.util.find_spec("sbx") is not None:
+        import sbx
+
+        table["SBX SAC, 5 critics of [256, 256]"] = lambda kw: sbx.SAC(
+            "MlpPolicy", env_id, policy_kwargs=dict(n_critics=5, net_arch=[256, 256]), **{**kw, "device": "auto"}
+        )
+    return table
+
+
+def multi_agent_models(env_id: str) -> dict[str, Callable[[dict[str, Any]], BaseAlgorithm]]:
+    """The multi-agent rows' constructors."""
+    return {
+        "SERASAC-MA eager": lambda kw: SERASAC("CTDEPolicy", gym.make(env_id), **kw),
+        "SERASAC-MA reduce-overhead": lambda kw: SERASAC(
+            "CTDEPolicy", gym.make(env_id), compile_update="reduce-overhead", **kw
+        ),
+        "MASAC eager": lambda kw: MASAC("CTDEPolicy", gym.make(env_id), **kw),
+    }
+
+
+def build(constructors: dict[str, Callable[[dict[str, Any]], BaseAlgorithm]], common: dict[str, Any]) -> dict[str, Any]:
+    """Each model built, its buffer filled and a few steps learned (compilation and CUDA graph recording happen here)."""
+    models = {}
+    for name, constructor in constructors.items():
+        start = time.perf_counter()
+        model = constructor(common)
+        model.learn(common["learning_starts"] + 10)
+        print(f"built {name} in {time.perf_counter() - start:.0f} s", flush=True)
+        models[name] = model
+    return models
+
+
+def speed_rows(models: dict[str, BaseAlgorithm], reference: str, args: argparse.Namespace) -> list[str]:
+    """Interleaved ``learn()`` rates, as table rows with their ratio to ``reference``'s rate."""
+    rates = interleaved_rates(models, "learn", args.blocks, args.block_steps, None, args.warmup_blocks)
+    stats = {name: median_iqr(values) for name, values in rates.items()}
+    return [
+        f"| learn() steps/s | {name} | {median:.1f} ({low:.1f}-{high:.1f}) | {median / stats[reference][0]:.2f}x {reference} |"
+        for name, (median, low, high) in stats.items()
+    ]
+
+
+def main() -> None:
+    route_mujoco_warnings()
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--env", default="HalfCheetah-v5")
+    parser.add_argument("--ma-env", default="sb3_sera/HalfCheetah-6x1-v0")
+    parser.add_argument("--sections", nargs="+", default=list(SECTIONS), choices=SECTIONS)
+    parser.add_argument("--blocks", type=int, default=3, help="timed blocks per model")
+    parser.add_argument("--block-steps", type=int, default=200, help="learn() steps per block")
+    parser.add_argument("--warmup-blocks", type=int, default=1, help="untimed rounds first")
+    parser.add_argument("--learning-starts", type=int, default=1000)
+    parser.add_argument("--equality-steps", type=int, default=100)
+    parser.add_argument("--aggregations", nargs="+", default=["median"], help="actor aggregations compared")
+    args = parser.parse_args()
+    if not th.cuda.is_available():
+        raise SystemExit("device_check.py checks a CUDA device, and torch sees none: run it on the GPU machine")
+    import sb3_sera.ctde.tasks  # noqa: F401  (registers the multi-agent ids)
+
+    started = time.perf_counter()
+    rows = []
+    common = dict(seed=0, learning_starts=args.learning_starts, device="cuda", verbose=0)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", CUDAGraphSkipWarning)
+        single = build(single_agent_models(args.env), common) if {"cudagraphs", "speed"} & set(args.sections) else {}
+        multi = build(multi_agent_models(args.ma_env), common) if {"cudagraphs", "speed"} & set(args.sections) else {}
+    if "cudagraphs" in args.sections:
+        from torch._dynamo.utils import counters
+
+        skips = [str(w.message) for w in caught if issubclass(w.category, CUDAGraphSkipWarning)]
+        rows.append(f"| cudagraphs | skipped graphs (Inductor's count) | {counters['inductor']['cudagraph_skips']} | |")
+        rows += [f"| cudagraphs | warning | {' '.join(message.split())[:300]} | |" for message in skips]
+    if "equality" in args.sections:
+        report = [step for step in (1, 40, 100) if step <= args.equality_steps]
+        for aggregation in args.aggregations:
+            differences = compiled_vs_eager.differences(aggregation, "compiled", args.equality_steps, report, "cuda")
+            cells = ", ".join(f"after {step}: {value:.1e} ({name})" for step, (value, name) in differences.items())
+            rows.append(f"| compiled vs eager | {aggregation} | {cells} | |")
+    if "speed" in args.sections:
+        rows += speed_rows(single, "SB3 SAC eager", args)
+        rows += speed_rows(multi, "SERASAC-MA eager", args)
+    seconds = time.perf_counter() - started
+    print(f"\n{th.cuda.get_device_name()}, torch {th.__version__}, CUDA {th.version.cuda}; {seconds:.0f} s")
+    print("| check | what | value | ratio |\n|---|---|---|---|")
+    print("\n".join(rows), flush=True)
+
+
+if __name__ == "__main__":
+    main()
