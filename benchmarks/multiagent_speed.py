@@ -11,8 +11,8 @@ them alike. The models:
 - ``SERASAC-MA``: SERASAC on the multi-agent task, the agents' actors stacked into one network (the default);
 - ``SERASAC-MA-loop``: the same with one SB3 actor per agent run in a loop (the layout before the stacked network);
 - ``MASAC`` and ``MASAC-loop``: SB3's SAC with the CTDE policy, stacked and looped;
-- with ``--compile``, ``SERASAC+compile`` and ``SERASAC-MA+compile``: both SERASACs with ``compile_update=True`` (or
-  ``"reduce-overhead"``, CUDA graphs, with ``--cuda-graphs``).
+- with ``--compile``, ``SERASAC+compile``, ``SERASAC-MA+compile`` and ``MASAC+compile``: the same with
+  ``compile_update=True`` (or ``"reduce-overhead"``, CUDA graphs, with ``--cuda-graphs``).
 
 Each figure is the median over blocks with its interquartile range, and its rate over single-agent SERASAC's (eager
 for the eager models, compiled for the compiled ones).
@@ -62,6 +62,7 @@ def build_model(name: str, args: argparse.Namespace, compile_mode: CompileMode) 
         "SERASAC-MA+compile": (SERASAC, "CTDEPolicy", multi_agent, dict(compile_update=compile_mode)),
         "MASAC": (MASAC, "CTDEPolicy", multi_agent, {}),
         "MASAC-loop": (MASAC, LoopMASACPolicy, multi_agent, {}),
+        "MASAC+compile": (MASAC, "CTDEPolicy", multi_agent, dict(compile_update=compile_mode)),
     }
     algo, policy, env, kwargs = policies[name]
     model = algo(policy, env, **common, **kwargs)
@@ -93,7 +94,7 @@ def main() -> None:
     import sb3_sera.ctde.tasks  # noqa: F401  (registers the multi-agent ids)
 
     th.set_num_threads(args.threads)
-    compiled = ["SERASAC+compile", "SERASAC-MA+compile"] if args.compile else []
+    compiled = ["SERASAC+compile", "SERASAC-MA+compile", "MASAC+compile"] if args.compile else []
     names = list(dict.fromkeys(["SERASAC", *args.models, *compiled]))
     compile_mode: CompileMode = "reduce-overhead" if args.cuda_graphs else True
     models, first_steps = {}, {}

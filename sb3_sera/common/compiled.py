@@ -516,13 +516,20 @@ class _Lines(logging.Handler):
         self.lines.append(" ".join(record.getMessage().split())[:500])
 
 
-def run_steps(model: Any, sample: Callable[[], Any], learning_rates: th.Tensor, gradient_steps: int) -> list[Any]:
+def run_steps(
+    model: Any,
+    sample: Callable[[], Any],
+    learning_rates: th.Tensor,
+    gradient_steps: int,
+    target_due: Callable[[int], bool] | None = None,
+) -> list[Any]:
     """
     Run ``model._compiled_step`` (its :func:`compile_model_step`) ``gradient_steps`` times, each on a batch from
     ``sample()``, without reading anything back: each step gets the Adam states of ``model._adam_plans``, the
-    learning rates, whether the targets are updated after it (:func:`~sb3_sera.common.off_policy.target_update_due`)
-    and the previous step's ``healthy`` flag (after a non-finite value nothing changes). With CUDA graphs each replay
-    overwrites the previous one's outputs: they are copied.
+    learning rates, whether the targets are updated after it (``target_due(gradient_step)``; by default
+    :func:`~sb3_sera.common.off_policy.target_update_due`) and the previous step's ``healthy`` flag (after a
+    non-finite value nothing changes). With CUDA graphs each replay overwrites the previous one's outputs: they are
+    copied.
 
     :return: the steps' outputs (:class:`StepOutput`)
     """
@@ -535,7 +542,11 @@ def run_steps(model: Any, sample: Callable[[], Any], learning_rates: th.Tensor, 
         batch = sample()
         arguments = dict(
             learning_rates=learning_rates,
-            target_update=due[target_update_due(model._n_updates, gradient_step, model.target_update_interval)],
+            target_update=due[
+                target_due(gradient_step)
+                if target_due is not None
+                else target_update_due(model._n_updates, gradient_step, model.target_update_interval)
+            ],
             healthy=healthy,
             states=states,
         )

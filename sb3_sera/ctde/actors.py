@@ -4,7 +4,8 @@ run in a loop (:class:`CTDEActor`, for any actor, IET's included), and the same 
 (:class:`StackedCTDEActor`, SB3's SAC and TD3 actors: MASAC, MATD3, MADDPG, SERASAC).
 
 The agents' actors of the off-policy CTDE algorithms (MASAC, MATD3, MADDPG, SERASAC) as one stacked network: each
-layer holds every agent's weights in one tensor ``(n_agents, out, in)`` and runs all agents in one batched product,
+layer holds every agent's weights in one tensor (a :class:`~sb3_sera.common.layers.BatchedLinear`, ``(n_agents, in,
+out)``) and runs all agents in one batched product,
 where a loop over the agents' SB3 actors ran 2 x n_agents small products per layer, forward and backward.
 
 The stacked network computes what the agents' SB3 actors compute (``sac.policies.Actor``: squashed Gaussian;
@@ -33,6 +34,8 @@ from stable_baselines3.sac.policies import Actor as SACActor
 from stable_baselines3.td3.policies import Actor as TD3Actor
 from torch import nn
 from torch.nn import functional as F
+
+from sb3_sera.common.layers import BatchedLinear
 
 
 def check_shareable(observation_space: spaces.Dict, agent_action_dims: dict[str, int], share: bool) -> None:
@@ -131,21 +134,6 @@ STACKABLE_ACTORS: dict[type[BasePolicy], bool] = {SACActor: True, TD3Actor: Fals
 SQUASH_EPSILON = 1e-6
 
 
-class StackedLinear(nn.Module):
-    """
-    ``n`` linear layers applied to ``n`` inputs at once: ``(n, batch, in) -> (n, batch, out)``, layer ``i`` on input
-    ``i`` (``weight`` ``(n, out, in)``, ``bias`` ``(n, out)``, as ``nn.Linear`` holds them, one per layer).
-    """
-
-    def __init__(self, n: int, in_features: int, out_features: int):
-        super().__init__()
-        self.weight = nn.Parameter(th.zeros(n, out_features, in_features))
-        self.bias = nn.Parameter(th.zeros(n, out_features))
-
-    def forward(self, inputs: th.Tensor) -> th.Tensor:
-        return th.baddbmm(self.bias.unsqueeze(1), inputs, self.weight.transpose(1, 2))
-
-
 def _linear_layers(actor: nn.Module, stochastic: bool) -> list[nn.Linear]:
     """An SB3 actor's linear layers in forward order: the hidden layers, then the mean (and the log-std, stochastic)."""
     if stochastic:
@@ -194,16 +182,22 @@ class StackedCTDEActor(CTDEActor):
         n_stacked = len(actors)
         n_hidden = len(layers[0]) - (2 if self.stochastic else 1)
         widths = [max(self.input_dims), *(layer.out_features for layer in layers[0][:n_hidden])]
-        self.hidden = nn.ModuleList(StackedLinear(n_stacked, widths[i], widths[i + 1]) for i in range(n_hidden))
-        self.mu = StackedLinear(n_stacked, widths[-1], max(self.action_dims))
-        self.log_std = StackedLinear(n_stacked, widths[-1], max(self.action_dims)) if self.stochastic else None
+        # Made with torch's CPU generator forked: the layers' own initial draws, overwritten below, leave the random
+        # state where the per-agent actors left it (the critics built next get the weights they always had)
+        with th.random.fork_rng(devices=[]):
+            self.hidden = nn.ModuleList(BatchedLinear(n_stacked, widths[i], widths[i + 1]) for i in range(n_hidden))
+            self.mu = BatchedLinear(n_stacked, widths[-1], max(self.action_dims))
+            self.log_std = BatchedLinear(n_stacked, widths[-1], max(self.action_dims)) if self.stochastic else None
         self.activation: nn.Module = cast(type[nn.Module], actors[0].activation_fn)()
         self.input_width = max(self.input_dims)
         with th.no_grad():
+            for stacked in self.stacked_layers():
+                stacked.weight.zero_()
+                stacked.bias.zero_()
             for index, agent_layers in enumerate(layers):
                 for stacked, layer in zip(self.stacked_layers(), agent_layers, strict=True):
-                    stacked.weight[index, : layer.out_features, : layer.in_features] = layer.weight
-                    stacked.bias[index, : layer.out_features] = layer.bias
+                    stacked.weight[index, : layer.in_features, : layer.out_features] = layer.weight.T
+                    stacked.bias[index, 0, : layer.out_features] = layer.bias
         # The joint action's columns in the agents' padded outputs (agent-major), where the agents' sizes differ
         columns = [agent * max(self.action_dims) + j for agent, size in enumerate(self.action_dims) for j in range(size)]
         self.register_buffer("joint_columns", th.tensor(columns, dtype=th.long), persistent=False)
@@ -211,9 +205,9 @@ class StackedCTDEActor(CTDEActor):
         self.equal_actions = len(set(self.action_dims)) == 1
         self._register_load_state_dict_pre_hook(self._stack_loaded_state)
 
-    def stacked_layers(self) -> list[StackedLinear]:
+    def stacked_layers(self) -> list[BatchedLinear]:
         """The stacked layers in forward order: the hidden layers, the mean and (stochastic) the log-std."""
-        return [*cast(list[StackedLinear], list(self.hidden)), self.mu, *([self.log_std] if self.log_std is not None else [])]
+        return [*cast(list[BatchedLinear], list(self.hidden)), self.mu, *([self.log_std] if self.log_std is not None else [])]
 
     @property
     def agent_actor_is_stochastic(self) -> bool:
@@ -311,8 +305,8 @@ class StackedCTDEActor(CTDEActor):
         row = 0 if self.share_parameters else index
         with th.no_grad():
             for stacked, layer in zip(self.stacked_layers(), _linear_layers(actor, self.stochastic), strict=True):
-                layer.weight.copy_(stacked.weight[row, : layer.out_features, : layer.in_features])
-                layer.bias.copy_(stacked.bias[row, : layer.out_features])
+                layer.weight.copy_(stacked.weight[row, : layer.in_features, : layer.out_features].T)
+                layer.bias.copy_(stacked.bias[row, 0, : layer.out_features])
         return actor
 
     def _old_layer_names(self) -> list[str]:
@@ -325,11 +319,16 @@ class StackedCTDEActor(CTDEActor):
     def _stacked_names(self) -> list[str]:
         return [*(f"hidden.{i}" for i in range(len(self.hidden))), "mu", *(["log_std"] if self.stochastic else [])]
 
-    def _stack(self, tensors: list[th.Tensor], like: th.Tensor) -> th.Tensor:
-        """Per-agent weights (or biases, or their Adam moments) in the stacked layout of ``like``, zero-padded."""
+    @staticmethod
+    def _stack(tensors: list[th.Tensor], like: th.Tensor) -> th.Tensor:
+        """
+        ``nn.Linear`` weights ``(out, in)`` or biases ``(out,)`` of each agent (or their Adam moments) in the batched
+        layout of ``like`` (``(n, in, out)`` or ``(n, 1, out)``), zero-padded.
+        """
         stacked = th.zeros(like.shape, dtype=tensors[0].dtype, device=tensors[0].device)
         for index, tensor in enumerate(tensors):
-            stacked[index][tuple(slice(0, size) for size in tensor.shape)] = tensor
+            batched = tensor.T if tensor.dim() == 2 else tensor.unsqueeze(0)
+            stacked[index][tuple(slice(0, size) for size in batched.shape)] = batched
         return stacked
 
     def stack_state_dict(self, state_dict: dict[str, Any], prefix: str = "") -> None:

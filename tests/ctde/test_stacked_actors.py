@@ -12,7 +12,7 @@ import torch as th
 from torch import nn
 
 from sb3_sera import MADDPG, MASAC, MATD3, SERASAC
-from sb3_sera.ctde.actors import CTDEActor, StackedCTDEActor, StackedLinear
+from sb3_sera.ctde.actors import CTDEActor, StackedCTDEActor
 from sb3_sera.ctde.policies import MASACPolicy, MATD3Policy
 from sb3_sera.ctde.tasks import TASKS
 from sb3_sera.sera.policies import SERACTDEPolicy
@@ -44,9 +44,9 @@ def _agent_gradients(actor: StackedCTDEActor, agent_actors: dict[str, nn.Module]
         layers = [m for m in agent_actors[agent].modules() if isinstance(m, nn.Linear)]
         for stacked, layer in zip(actor.stacked_layers(), layers, strict=True):
             assert stacked.weight.grad is not None and layer.weight.grad is not None
-            share = stacked.weight.grad[row, : layer.out_features, : layer.in_features]
-            pairs.append((layer.weight.grad, share))
-            pairs.append((layer.bias.grad, stacked.bias.grad[row, : layer.out_features]))
+            share = stacked.weight.grad[row, : layer.in_features, : layer.out_features]
+            pairs.append((layer.weight.grad.T, share))
+            pairs.append((layer.bias.grad, stacked.bias.grad[row, 0, : layer.out_features]))
     return pairs
 
 
@@ -88,7 +88,7 @@ def test_the_stacked_actors_act_and_learn_as_one_actor_per_agent(env_id, algo):
     first = actor.stacked_layers()[0]
     assert first.weight.grad is not None
     for index, size in enumerate(n_inputs):
-        assert not first.weight.grad[index, :, size:].any()
+        assert not first.weight.grad[index, size:, :].any()
 
 
 def test_shared_parameters_run_every_agent_through_one_network():
@@ -107,17 +107,7 @@ def test_shared_parameters_run_every_agent_through_one_network():
     (actions.sum() + log_prob.sum()).backward()
     sum(part[0].sum() + part[1].sum() for part in parts).backward()
     for stacked, layer in zip(actor.stacked_layers(), [m for m in shared.modules() if isinstance(m, nn.Linear)], strict=True):
-        th.testing.assert_close(stacked.weight.grad[0], layer.weight.grad, rtol=1e-4, atol=1e-5)
-
-
-def test_stacked_linear_by_hand():
-    layer = StackedLinear(2, 3, 2)
-    with th.no_grad():
-        layer.weight.copy_(th.arange(12.0).reshape(2, 2, 3))
-        layer.bias.copy_(th.tensor([[1.0, -1.0], [0.5, 0.0]]))
-    inputs = th.tensor([[[1.0, 0.0, 2.0]], [[0.0, 1.0, 0.0]]])
-    # Agent 0: [0 1 2; 3 4 5] @ [1 0 2] + [1 -1] = [5, 12]; agent 1: [6 7 8; 9 10 11] @ [0 1 0] + [0.5 0] = [7.5, 10]
-    th.testing.assert_close(layer(inputs), th.tensor([[[5.0, 12.0]], [[7.5, 10.0]]]))
+        th.testing.assert_close(stacked.weight.grad[0], layer.weight.grad.T, rtol=1e-4, atol=1e-5)
 
 
 def test_the_stacked_network_refuses_actors_it_cannot_stack():
@@ -163,11 +153,25 @@ def test_a_model_saved_with_one_actor_per_agent_loads_stacked(algo, policy_class
     assert len(old_state) == owners * len(new_state)
     first = loaded.actor.stacked_layers()[0]
     layer = next(m for m in old.actor.agent_actor(old.actor.agents[-1]).modules() if isinstance(m, nn.Linear))
-    moment = new_state[0]["exp_avg"][owners - 1, : layer.out_features, : layer.in_features]
-    th.testing.assert_close(moment, old_state[(owners - 1) * len(new_state)]["exp_avg"])
+    moment = new_state[0]["exp_avg"][owners - 1, : layer.in_features, : layer.out_features]
+    th.testing.assert_close(moment, old_state[(owners - 1) * len(new_state)]["exp_avg"].T)
     assert new_state[0]["exp_avg"].shape == first.weight.shape
     loaded.learn(20, reset_num_timesteps=False)
     # A stacked model saves and loads as it is
     loaded.save(tmp_path / "new")
     again = algo.load(tmp_path / "new", env=gym.make(env_id))
     assert_close_state(snapshot(loaded, optimizers=True), snapshot(again, optimizers=True))
+
+
+def test_the_same_seed_gives_the_per_agent_actors_initial_weights(monkeypatch):
+    stacked = MASAC("CTDEPolicy", "sb3_sera/Pusher-3p-v0", seed=0, **SMALL_CTDE)
+    monkeypatch.setattr(MASACPolicy, "ctde_actor_class", CTDEActor)
+    loop = MASAC("CTDEPolicy", "sb3_sera/Pusher-3p-v0", seed=0, **SMALL_CTDE)
+    for agent in loop.actor.agents:
+        for new, old in zip(
+            stacked.actor.agent_actor(agent).parameters(), loop.actor.agent_actor(agent).parameters(), strict=True
+        ):
+            assert th.equal(new, old)
+    # Nothing more is drawn: the critics built after the actors start where they did
+    for key, value in loop.critic.state_dict().items():
+        assert th.equal(stacked.critic.state_dict()[key], value), key
