@@ -36,13 +36,17 @@ Every summary is computed per run first, then compared across runs: a critic's i
   value correlation (the paper's Fig. 5).
 
 A claim (:class:`Claim`) names a task, a budget, a measure, two arms and the claimed direction, and whether it is
-primary; a ledger declares its claims in ``results/claims.yml`` (:func:`load_claims`) before the runs that decide
-them, and a report of other runs tests :func:`default_claims`, all exploratory. :func:`evaluate` decides them: only
-arms whose shared settings match are compared; the size is the difference of means with its Welch t-interval, the
-test an exact permutation test; the primary claims' p-values are Holm-adjusted as one family (a declared primary
-claim not yet tested counts with p = 1). Verdicts at :data:`ALPHA`: *supported* when p is below it and the difference
-lies on the claimed side, *contradicted* when below it on the other side, *inconclusive* otherwise, and *too few
-runs* when an arm has fewer than :data:`MIN_RUNS` runs with the measure.
+primary; a ledger declares its claims in ``results/claims.yml`` (:func:`load_claims`), and a report of other runs
+tests :func:`default_claims`, all exploratory. :func:`evaluate` decides them: only arms whose shared settings match
+are compared; the size is the difference of means with its 95% Welch t-interval; the test's p is the larger of the
+studentized permutation p and Welch's p (:func:`~sb3_sera.experiments.stats.decision_p_value`), so that no verdict
+points where its interval does not. The primary claims' p-values are Holm-adjusted within their family (a declared
+primary claim not yet tested counts with p = 1), the exploratory claims' turned into Benjamini-Hochberg q-values over
+all of them (untested ones count with p = 1). Verdicts at :data:`ALPHA`, read from the adjusted p: *supported* when it
+is below alpha and the difference lies on the claimed side, *contradicted* when below it on the other side,
+*inconclusive* otherwise; *too few runs to decide* where the arms' sizes cannot give a p below the claim's threshold
+(alpha over the family's size for a primary claim, Holm's first; alpha for an exploratory one), and *interim* while a
+claim with runs planned has fewer.
 """
 
 from collections.abc import Callable, Sequence
@@ -58,8 +62,8 @@ from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sb3_sera.experiments.records import NPZ_ERRORS, RunResult
 from sb3_sera.experiments.registry import shared_settings, unmatched_settings, unmatched_text
 
-#: Runs each arm needs before a test or a verdict is given
-MIN_RUNS = 3
+#: Runs each arm needs before its interval is given (a test needs as many as can give a p below its threshold)
+MIN_RUNS = 2
 #: The variant the claims are about
 SERA = "serasac"
 #: Level of every test
@@ -383,8 +387,13 @@ class ClaimResult:
     difference: float | None = None
     low: float | None = None
     high: float | None = None
+    #: The decision p: the larger of :attr:`permutation_p` and :attr:`welch_p`
     p_value: float | None = None
-    #: Holm-adjusted over the primary family (primary claims only)
+    #: The studentized permutation test's p
+    permutation_p: float | None = None
+    #: Welch's t-test p (below 0.05 exactly when the 95% interval excludes 0)
+    welch_p: float | None = None
+    #: Holm-adjusted within the claim's family (primary claims), or its Benjamini-Hochberg q-value (exploratory)
     adjusted_p: float | None = None
     verdict: str = "waiting for runs"
     #: Why there is no test, or which settings group was used
@@ -411,6 +420,10 @@ def evaluate(claims: Sequence[Claim], groups: Sequence[Any], alpha: float = ALPH
     Decide every claim on the report groups (:func:`~sb3_sera.experiments.report.groups.group_runs`): see the
     module's docstring.
     """
+    sizes: dict[str, int] = {}
+    for claim in claims:
+        if claim.primary:
+            sizes[claim.family] = sizes.get(claim.family, 0) + 1
     results = []
     for claim in claims:
         arm, baseline, note = _matched_groups(claim, groups)
@@ -422,31 +435,56 @@ def evaluate(claims: Sequence[Claim], groups: Sequence[Any], alpha: float = ALPH
             for group in (arm, baseline)
         ]
         result = ClaimResult(claim, values[0], values[1], note=note)
-        if arm is not None:
-            if min(len(values[0]), len(values[1])) < claim.planned:
-                result.verdict = f"interim ({len(values[0])} and {len(values[1])} of {claim.planned} runs)"
-                if len(values[0]) and len(values[1]):
-                    result.difference = float(values[0].mean() - values[1].mean())
-            elif min(len(values[0]), len(values[1])) < MIN_RUNS:
-                result.verdict = f"too few runs (< {MIN_RUNS})"
-                if len(values[0]) and len(values[1]):
-                    result.difference = float(values[0].mean() - values[1].mean())
-            else:
-                result.difference, result.low, result.high = stats.welch_interval(values[0], values[1])
-                result.p_value = stats.permutation_p_value(values[0], values[1])
         results.append(result)
+        if arm is None:
+            continue
+        _test(result, alpha / sizes[claim.family] if claim.primary else alpha)
+    _adjust(results)
+    for result in results:
+        if result.adjusted_p is None or result.difference is None:
+            continue
+        claimed_side = result.difference < 0 if result.claim.direction == "lower" else result.difference > 0
+        result.verdict = ("supported" if claimed_side else "contradicted") if result.adjusted_p < alpha else "inconclusive"
+    return results
+
+
+def _test(result: ClaimResult, threshold: float) -> None:
+    """
+    Fill ``result``'s difference, interval and p-values, unless its arms have fewer runs than it plans or too few
+    to give a p below ``threshold`` (its verdict then says so).
+    """
+    values, claim = (result.arm_values, result.baseline_values), result.claim
+    n_arm, n_baseline = len(values[0]), len(values[1])
+    if min(n_arm, n_baseline) < max(claim.planned, MIN_RUNS):
+        result.verdict = (
+            f"interim ({n_arm} and {n_baseline} of {claim.planned} runs)"
+            if min(n_arm, n_baseline) < claim.planned
+            else f"too few runs to decide (fewer than {MIN_RUNS} an arm)"
+        )
+        if n_arm and n_baseline:
+            result.difference = float(values[0].mean() - values[1].mean())
+        return
+    result.difference, result.low, result.high = stats.welch_interval(values[0], values[1])
+    smallest = stats.smallest_p_value(n_arm, n_baseline)
+    if smallest >= threshold:
+        result.verdict = f"too few runs to decide (smallest possible p {smallest:.3g})"
+        return
+    result.p_value, result.permutation_p, result.welch_p = stats.decision_p_value(values[0], values[1])
+
+
+def _adjust(results: Sequence[ClaimResult]) -> None:
+    """Each tested claim's adjusted p: Holm within its primary family, or its q-value over the exploratory claims."""
     for family in families(results):
         adjusted = stats.holm_adjusted([1.0 if r.p_value is None else r.p_value for r in family])
         for result, p_adjusted in zip(family, adjusted, strict=True):
             if result.p_value is not None:
                 result.adjusted_p = p_adjusted
-    for result in results:
-        p = result.adjusted_p if result.claim.primary else result.p_value
-        if p is None or result.difference is None:
-            continue
-        claimed_side = result.difference < 0 if result.claim.direction == "lower" else result.difference > 0
-        result.verdict = ("supported" if claimed_side else "contradicted") if p < alpha else "inconclusive"
-    return results
+    exploratory = [result for result in results if not result.claim.primary]
+    if exploratory:
+        q_values = stats.benjamini_hochberg([1.0 if r.p_value is None else r.p_value for r in exploratory])
+        for result, q in zip(exploratory, q_values, strict=True):
+            if result.p_value is not None:
+                result.adjusted_p = q
 
 
 def families(results: Sequence[ClaimResult]) -> list[list[ClaimResult]]:
@@ -469,14 +507,17 @@ def _p_text(value: float | None) -> str:
 
 
 def claims_table(results: Sequence[ClaimResult], primary: bool) -> list[str]:
-    """A Markdown table of ``results`` (primary claims with their Holm-adjusted p), with its legend."""
+    """
+    A Markdown table of ``results``: each claim's difference with its interval, Welch's and the studentized
+    permutation p, and the p its verdict reads (Holm-adjusted for primary claims, the q-value for exploratory ones).
+    """
     if not results:
         return []
-    holm = " | Holm p" if primary else ""
+    adjusted = "Holm p" if primary else "BH q"
     lines = [
-        f"| claim | source | measure (per run) | units | SERA vs | n | SERA mean | baseline mean "
-        f"| difference [95% Welch CI] | permutation p{holm} | verdict |",
-        "|---|---|---|---|---|---|---|---|---|---|---|" + ("---|" if primary else ""),
+        "| claim | source | measure (per run) | units | SERA vs | n | SERA mean | baseline mean "
+        f"| difference [95% Welch CI] | Welch p | permutation p | {adjusted} | verdict |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for result in results:
         claim, measure = result.claim, MEASURES[result.claim.measure]
@@ -488,12 +529,11 @@ def claims_table(results: Sequence[ClaimResult], primary: bool) -> list[str]:
         arm_mean = _format(float(result.arm_values.mean())) if len(result.arm_values) else ""
         base_mean = _format(float(result.baseline_values.mean())) if len(result.baseline_values) else ""
         verdict = result.verdict + (f" ({result.note})" if result.note else "")
-        holm_cell = f" | {_p_text(result.adjusted_p)}" if primary else ""
         lines.append(
             f"| {claim.id}: SERA {claim.direction} | {claim.source} | {measure.text} "
             f"| {'paper' if measure.paper_units else 'scale-free'} | {claim.baseline} "
             f"| {len(result.arm_values)} vs {len(result.baseline_values)} | {arm_mean} | {base_mean} | {interval} "
-            f"| {_p_text(result.p_value)}{holm_cell} | {verdict} |"
+            f"| {_p_text(result.welch_p)} | {_p_text(result.permutation_p)} | {_p_text(result.adjusted_p)} | {verdict} |"
         )
     return lines
 
@@ -508,18 +548,24 @@ def claims_legend(sizes: dict[str, int]) -> str:
     family = (
         " Primary claims are Holm-adjusted within their family ("
         + ", ".join(f"'{name}': {size}" for name, size in sizes.items())
-        + " claims; a primary claim not yet tested counts with p = 1) and their verdicts read the adjusted p; a claim "
-        "with runs planned is interim, and not decided, until each arm has them."
+        + " claims; a primary claim not yet tested counts with p = 1); a claim with runs planned is interim, and not "
+        "decided, until each arm has them."
         if sizes
         else ""
     )
     return (
-        "Difference: SERA's mean minus the baseline's over per-run measures, with its 95% Welch t-interval. "
-        "Permutation p: two-sided, exact over every split of the pooled runs. Units: 'paper' is the measure the paper "
-        "plots, 'scale-free' our form of it normalised by the returns' or targets' scale. Verdict at alpha "
-        f"{ALPHA}: supported when p < alpha with the difference on the claimed side, contradicted when p < alpha on "
-        f"the other side, inconclusive otherwise; no test below {MIN_RUNS} runs an arm. Only arms whose shared settings "
-        f"match are compared.{family} See `sb3_sera/experiments/claims.py` for each measure."
+        "Difference: SERA's mean minus the baseline's over per-run measures, with its 95% Welch t-interval. Welch p: "
+        "Welch's two-sided t-test (below 0.05 exactly when the interval excludes 0). Permutation p: the studentized "
+        "permutation test, Welch's t statistic over every split of the pooled runs (200,000 random splits where there "
+        "are more). A claim is decided on the larger of the two, so that no verdict points where its interval does "
+        "not, adjusted for multiplicity: Holm within a primary family, Benjamini-Hochberg q-values over all the "
+        "exploratory claims (untested ones count with p = 1). Units: 'paper' is the measure the paper plots, "
+        "'scale-free' our form of it normalised by the returns' or targets' scale. Verdict at alpha "
+        f"{ALPHA}, from the adjusted p: supported when below alpha with the difference on the claimed side, "
+        "contradicted when below alpha on the other side, inconclusive otherwise; too few runs to decide where the "
+        "arms' sizes cannot give a p below the claim's threshold (alpha over its family's size for a primary claim, "
+        f"alpha for an exploratory one). Only arms whose shared settings match are compared.{family} See "
+        "`sb3_sera/experiments/claims.py` for each measure."
     )
 
 
@@ -538,7 +584,12 @@ def claims_section(results: Sequence[ClaimResult], sizes: dict[str, int] | None 
             "",
         ]
     if exploratory:
-        lines += ["Exploratory claims (not corrected for multiplicity):", "", *claims_table(exploratory, False), ""]
+        lines += [
+            "Exploratory claims (Benjamini-Hochberg q-values over all of them):",
+            "",
+            *claims_table(exploratory, False),
+            "",
+        ]
     return [*lines, claims_legend(family_sizes(results) if sizes is None else sizes)] if lines else []
 
 

@@ -10,7 +10,8 @@ milliseconds where rliable's resample-by-resample loop takes seconds; the tests 
 
 A claim about two arms is decided with tests whose size holds at five runs a side, where a percentile bootstrap of
 the difference covers the truth well under 95% of the time: the Welch t-interval of the difference of means, the
-exact permutation test of that difference, and Holm's step-down adjustment over a family of claims.
+studentized permutation test (the Welch t statistic over every split of the pooled runs), and over a family of
+claims Holm's step-down adjustment (family-wise error) or Benjamini and Hochberg's q-values (false discovery rate).
 """
 
 import itertools
@@ -75,35 +76,97 @@ def welch_interval(sample: ArrayLike, baseline: ArrayLike) -> tuple[float, float
     return difference, difference - half, difference + half
 
 
-def permutation_p_value(sample: ArrayLike, baseline: ArrayLike, permutations: int = PERMUTATIONS) -> float:
-    """
-    Two-sided permutation test of ``mean(sample) - mean(baseline)``: the share of the pooled runs' splits into two
-    sides of the same sizes whose difference of means is at least as far from 0 as the observed one. Every split is
-    enumerated while there are at most ``permutations`` of them (exact: at 5 against 5 the smallest p is 2/252);
-    above that, ``permutations`` random splits seeded with :data:`BOOTSTRAP_SEED`, the observed split counted in
-    (Phipson and Smyth's ``(b + 1) / (m + 1)``).
+def _welch_t(sums: np.ndarray, squares: np.ndarray, total: float, total_squares: float, k: int, n: int) -> np.ndarray:
+    """The Welch t statistic of splits of ``n`` pooled values into ``k`` and ``n - k``, from each split's sums."""
+    other_sums, other_squares = total - sums, total_squares - squares
+    mean_x, mean_y = sums / k, other_sums / (n - k)
+    var_x = np.maximum(squares - sums**2 / k, 0.0) / (k - 1)
+    var_y = np.maximum(other_squares - other_sums**2 / (n - k), 0.0) / (n - k - 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        statistic = (mean_x - mean_y) / np.sqrt(var_x / k + var_y / (n - k))
+    # Both sides constant: 0 where the means are equal, infinite where they differ
+    return np.where(np.isnan(statistic), 0.0, statistic)
 
-    :raises ValueError: with an empty side
+
+def _splits(n: int, k: int, permutations: int) -> tuple[np.ndarray, int]:
+    """Every split of ``n`` runs into ``k`` and ``n - k`` (as the first side's indices), or ``permutations`` random
+    ones seeded with :data:`BOOTSTRAP_SEED`; and 1 for a random draw (the observed split is counted in), else 0."""
+    if math.comb(n, k) <= permutations:
+        return np.array(list(itertools.combinations(range(n), k)), dtype=np.intp), 0
+    rng = np.random.default_rng(BOOTSTRAP_SEED)
+    return np.argsort(rng.random((permutations, n)), axis=1)[:, :k], 1
+
+
+def studentized_permutation_p_value(sample: ArrayLike, baseline: ArrayLike, permutations: int = PERMUTATIONS) -> float:
+    """
+    Two-sided studentized permutation test of ``mean(sample) - mean(baseline)``: the share of the pooled runs' splits
+    into two sides of the same sizes whose Welch t statistic is at least as far from 0 as the observed one. Unlike
+    the raw difference of means, the studentized statistic keeps the test about the means where the two sides'
+    spreads differ (Janssen 1997; Chung and Romano 2013). Every split is enumerated while there are at most
+    ``permutations`` of them; above that, ``permutations`` random splits seeded with :data:`BOOTSTRAP_SEED`, the
+    observed split counted in (``(b + 1) / (m + 1)``).
+
+    :raises ValueError: with fewer than two runs on a side
     """
     x, y = np.asarray(sample, dtype=float), np.asarray(baseline, dtype=float)
-    if x.size == 0 or y.size == 0:
-        raise ValueError(f"a permutation test needs runs on both sides, got {x.size} and {y.size}")
+    if x.size < 2 or y.size < 2:
+        raise ValueError(f"a studentized permutation test needs two runs a side, got {x.size} and {y.size}")
     pooled = np.concatenate([x, y])
     n, k = pooled.size, x.size
-    observed = abs(x.mean() - y.mean())
-    # Differences that equal the observed one up to rounding count as at least as far
-    tolerance = 1e-9 * max(1.0, float(np.abs(pooled).max()))
-    if math.comb(n, k) <= permutations:
-        chosen = np.array(list(itertools.combinations(range(n), k)), dtype=np.intp)
-        sums = pooled[chosen].sum(axis=1)
-        extra = 0
-    else:
-        rng = np.random.default_rng(BOOTSTRAP_SEED)
-        chosen = np.argsort(rng.random((permutations, n)), axis=1)[:, :k]
-        sums = pooled[chosen].sum(axis=1)
-        extra = 1
-    differences = np.abs(sums / k - (pooled.sum() - sums) / (n - k))
-    return float((np.count_nonzero(differences >= observed - tolerance) + extra) / (sums.size + extra))
+    chosen, extra = _splits(n, k, permutations)
+    values = pooled[chosen]
+    total, total_squares = float(pooled.sum()), float((pooled**2).sum())
+    statistics = np.abs(_welch_t(values.sum(axis=1), (values**2).sum(axis=1), total, total_squares, k, n))
+    observed = abs(float(_welch_t(np.array([x.sum()]), np.array([(x**2).sum()]), total, total_squares, k, n)[0]))
+    # Statistics that equal the observed one up to rounding count as at least as far
+    at_least = statistics >= observed * (1 - 1e-9) if np.isfinite(observed) else np.isinf(statistics)
+    return float((np.count_nonzero(at_least) + extra) / (statistics.size + extra))
+
+
+def smallest_p_value(n_sample: int, n_baseline: int, permutations: int = PERMUTATIONS) -> float:
+    """
+    The smallest p-value :func:`studentized_permutation_p_value` can give at these sizes, whatever the runs: one
+    split of all (two with sides of equal size, whose mirror split is as extreme), or one in ``permutations + 1``.
+    """
+    splits = math.comb(n_sample + n_baseline, n_sample)
+    if splits > permutations:
+        return 1 / (permutations + 1)
+    return (2 if n_sample == n_baseline else 1) / splits
+
+
+def decision_p_value(sample: ArrayLike, baseline: ArrayLike, permutations: int = PERMUTATIONS) -> tuple[float, float, float]:
+    """
+    The p-value a claim is decided on: the larger of the studentized permutation p and Welch's t-test p, so that a
+    difference is declared only where the permutation test finds it and the 95% Welch interval excludes 0 (Welch's p
+    is below 0.05 exactly when that interval excludes 0): the verdict never points where its interval does not.
+
+    :return: the decision p, the studentized permutation p and Welch's p
+    """
+    permutation = studentized_permutation_p_value(sample, baseline, permutations)
+    welch = welch_p_value(sample, baseline)
+    assert welch is not None  # two runs a side, checked above
+    if math.isnan(welch):
+        # Two constant sides: a certain difference, or none
+        welch = 0.0 if np.mean(sample) != np.mean(baseline) else 1.0
+    return max(permutation, welch), permutation, welch
+
+
+def benjamini_hochberg(p_values: Sequence[float]) -> list[float]:
+    """
+    Benjamini and Hochberg's q-values: the i-th smallest of m p-values times ``m / i``, made monotone from the largest
+    down and capped at 1. Declaring the claims whose q is below alpha keeps the expected share of false discoveries
+    among them at most alpha (for independent or positively dependent tests).
+    """
+    p = np.asarray(p_values, dtype=float)
+    m = p.size
+    order = np.argsort(p, kind="stable")
+    q = np.empty(m)
+    running = 1.0
+    for rank in range(m, 0, -1):
+        index = order[rank - 1]
+        running = min(running, m / rank * p[index])
+        q[index] = running
+    return [float(value) for value in q]
 
 
 def holm_adjusted(p_values: Sequence[float]) -> list[float]:
