@@ -147,7 +147,7 @@ def decision_p_value(sample: ArrayLike, baseline: ArrayLike, permutations: int =
     assert welch is not None  # two runs a side, checked above
     if math.isnan(welch):
         # Two constant sides: a certain difference, or none
-        welch = 0.0 if np.mean(sample) != np.mean(baseline) else 1.0
+        welch = 0.0 if np.asarray(sample, dtype=float).mean() != np.asarray(baseline, dtype=float).mean() else 1.0
     return max(permutation, welch), permutation, welch
 
 
