@@ -35,6 +35,7 @@ from sb3_sera.experiments.claims import (
     family_sizes,
     load_claims,
 )
+from sb3_sera.experiments.declared import seen_before_lines
 from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sb3_sera.experiments.identity import identity_lines, load_code_hashes
 from sb3_sera.experiments.records import NPZ_ERRORS, RESULT_FILE, RunResult, env_name, load_result, read_record, run_ids
@@ -254,7 +255,16 @@ def results_block(ledger: str | Path = LEDGER_DIR, reps: int = LEDGER_REPS) -> s
     hashes = load_code_hashes(ledger)
     decided = _decided(ledger, groups)
     if family_sizes(decided):
-        lines += [*claims_section([r for r in decided if r.claim.primary]), ""]
+        primary = [r for r in decided if r.claim.primary]
+        lines += [*claims_section(primary), ""]
+        lines += [
+            "What was seen before each primary claim (from git: the commit that first declared it in "
+            f"`{CLAIMS_FILE}`, the runs of each arm it reads that the ledger held then, and the claim on the runs added "
+            "after alone):",
+            "",
+            *seen_before_lines(primary, runs, ledger),
+            "",
+        ]
     for (env_id, budget), section in _sections(runs).items():
         commits = sorted({_commit(run) for group in section for run in group.runs})
         lines += [

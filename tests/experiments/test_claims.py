@@ -2,6 +2,7 @@
 
 import json
 import shutil
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -10,6 +11,7 @@ import yaml
 from scipy import stats
 
 from sb3_sera.experiments import claims
+from sb3_sera.experiments.declared import declaration, seen_before_lines
 from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sb3_sera.experiments.report import group_runs, load_runs
 from sb3_sera.experiments.stats import benjamini_hochberg
@@ -281,3 +283,34 @@ def test_no_verdict_of_the_ledger_points_where_its_interval_does_not():
         assert (result.welch_p < 0.05) == excludes_zero, result.claim.id
         if result.verdict in ("supported", "contradicted"):
             assert excludes_zero and result.p_value >= result.welch_p, result.claim.id
+
+
+def test_what_was_seen_before_a_claim_comes_from_git(tmp_path):
+    ledger = tmp_path / "results"
+    git = ["git", "-C", str(tmp_path), "-c", "user.name=t", "-c", "user.email=t@t"]
+    subprocess.run([*git, "init", "-q"], check=True)
+    for seed in range(2):
+        _claim_run(ledger, "serasac", seed, 0.2, [0.0, 10.0, 20.0 + seed])
+        _claim_run(ledger, "sera_nolr", seed, 0.6, [0.0, 10.0, 30.0 + seed])
+    entry = (
+        "{id: later, task: HalfCheetah-v5, n_timesteps: 300, measure: auc, arm: serasac, baseline: sera_nolr, "
+        "direction: higher}"
+    )
+    (ledger / "claims.yml").write_text(f"claims:\n  - {entry}\n")
+    subprocess.run([*git, "add", "."], check=True)
+    subprocess.run([*git, "commit", "-qm", "two runs a side, then the claim"], check=True)
+    for seed in range(2, 6):
+        _claim_run(ledger, "serasac", seed, 0.2, [0.0, 10.0, 20.0 + seed])
+        _claim_run(ledger, "sera_nolr", seed, 0.6, [0.0, 10.0, 30.0 + seed])
+    declared = declaration(ledger, "later")
+    assert declared is not None and len(declared.runs) == 4 and "serasac/HalfCheetah-v5_1" in declared.runs
+    runs, _ = load_runs([ledger])
+    unsaved = claims.Claim("unsaved", "HalfCheetah-v5", 300, "auc", "serasac", "sera_nolr", "higher")
+    results = claims.evaluate([*claims.load_claims(ledger / "claims.yml"), unsaved], group_runs(runs))
+    _, _, row, missing = seen_before_lines(results, runs, ledger)
+    # Two of each arm's six runs were in the ledger when the claim was committed; on the four added after, SERA's
+    # AUC is 2.5 below NoLR's, the sides apart (the permutation test's best p at 4 against 4: 2/70)
+    assert row.startswith(f"| later | {declared.commit} (")
+    assert row.endswith("| 2 of 6 | 2 of 6 | 4 against 4: -2.5 [-3.06, -1.94], p 0.0286 |")
+    assert missing == "| unsaved | not committed, or no git history | | | |"
+    assert declaration(tmp_path.parent, "later") is None  # no repository there
