@@ -9,6 +9,7 @@ import json
 import shutil
 import time
 from collections.abc import Sequence
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
@@ -125,6 +126,16 @@ class ProgressFile(BaseCallback):
         return True
 
 
+#: Where a run under way keeps its resumes until ``result.json`` takes them
+RESUMES_FILE = ".resumes.json"
+
+
+def _resumes(folder: Path) -> list[dict[str, Any]]:
+    """The resumes a run under way has had (:data:`RESUMES_FILE`), oldest first."""
+    path = folder / RESUMES_FILE
+    return list(json.loads(path.read_text())) if path.exists() else []
+
+
 def steps_done(folder: Path, budget: int) -> int:
     """Steps a run has made: its budget when finished, else what its progress file says (0 before it starts)."""
     if (folder / RESULT_FILE).exists():
@@ -144,8 +155,12 @@ def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
     if (folder / RESULT_FILE).exists():
         return load_result(folder)
     route_mujoco_warnings()
-    # An interrupted run starts again here, maybe under newer code: its record names the code that runs now
-    write_atomic(records_dir(folder, spec.env_id) / "args.yml", yaml.safe_dump(plain(spec.args()), sort_keys=True))
+    # An interrupted run starts again here, maybe under newer code: its record names the code that runs now, and its
+    # resumes (below) the code before
+    records = records_dir(folder, spec.env_id) / "args.yml"
+    code_before = (yaml.safe_load(records.read_text()) or {}).get("git_commit") if records.exists() else None
+    args = plain(spec.args())
+    write_atomic(records, yaml.safe_dump(args, sort_keys=True))
     if spec.num_threads is not None:
         th.set_num_threads(spec.num_threads)
     env_kwargs = spec.hyperparams.get("env_kwargs") or {}
@@ -163,6 +178,13 @@ def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
         # Interrupted: on from the last checkpoint, to the same final parameters as a run never interrupted
         eval_env.close()
         model, elapsed = load_checkpoint(algorithm_classes()[spec.algo], folder, spec.device, callback)
+        resume = {
+            "from_step": int(model.num_timesteps),
+            "at": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+            "code_before": code_before,
+            "code_after": args.get("git_commit"),
+        }
+        write_atomic(folder / RESUMES_FILE, json.dumps([*_resumes(folder), resume]))
     else:
         env = make_vec_env(spec.env_id, n_envs=n_envs, seed=spec.seed, monitor_dir=str(folder), env_kwargs=env_kwargs)
         model = make_model(spec, env, tensorboard_log=str(folder))
@@ -184,8 +206,14 @@ def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
     model.env.close()
     callback.eval_env.close()
     # Written last: its presence marks the run as finished. Threads and device as the worker saw them
-    result = {"wall_time_s": wall_time, "torch_threads": th.get_num_threads(), "device": str(model.device)}
+    result = {
+        "wall_time_s": wall_time,
+        "torch_threads": th.get_num_threads(),
+        "device": str(model.device),
+        "resumes": _resumes(folder),
+    }
     write_atomic(folder / RESULT_FILE, json.dumps(result))
+    (folder / RESUMES_FILE).unlink(missing_ok=True)
     if not spec.keep_checkpoints:
         for name in (CHECKPOINT_DIR, f"{CHECKPOINT_DIR}.old", f"{CHECKPOINT_DIR}.partial"):
             shutil.rmtree(folder / name, ignore_errors=True)

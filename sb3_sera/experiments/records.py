@@ -5,8 +5,9 @@ A run on disk, in rl-zoo3's layout so that the zoo's own runs read the same way.
 seed, budget, evaluation settings, threads, device, where the hyperparameters came from, the package versions, the
 git commit of the code that ran with whether its tree was clean, and a digest of the package's source),
 then ``evaluations.npz`` and the callback's records, ``0.monitor.csv``, TensorBoard events under
-``<variant>_seed<seed>_1/``, the final model ``<env_name>.zip`` and, written last, ``result.json`` (wall time, and
-the torch threads and device the run had).
+``<variant>_seed<seed>_1/``, the final model ``<env_name>.zip`` and, written last, ``result.json`` (wall time,
+the torch threads and device the run had, and each resume from a checkpoint: the step, when, the code before and
+after).
 
 This module names those folders and files and reads a finished run's records back (ours or rl-zoo3's) as a
 :class:`RunResult`; :mod:`sb3_sera.experiments.provenance` says which code and package versions ran.
@@ -121,6 +122,9 @@ class RunResult:
     eval_episodes: int | None = None
     #: The shared settings its comparison studied (its arms could differ in them), as recorded
     studies: list[str] = field(default_factory=list)
+    #: Each time it was resumed from a checkpoint: the step, when (UTC), and the code before and after (``result.json``;
+    #: empty for a run never interrupted, or recorded before resumes were)
+    resumes: list[dict[str, Any]] = field(default_factory=list)
 
 
 def load_result(folder: Path) -> RunResult:
@@ -161,9 +165,12 @@ def load_result(folder: Path) -> RunResult:
             raise ValueError(f"{folder}: unreadable {BIAS_FILE} ({type(error).__name__}: {error})") from None
     result_file = folder / RESULT_FILE
     wall_time = math.nan
+    resumes: list[dict[str, Any]] = []
     if result_file.exists():
         try:
-            wall_time = float(json.loads(result_file.read_text())["wall_time_s"])
+            result = json.loads(result_file.read_text())
+            wall_time = float(result["wall_time_s"])
+            resumes = list(result.get("resumes", []))
         except (ValueError, KeyError, TypeError) as error:
             raise ValueError(f"{folder}: unreadable {RESULT_FILE} ({type(error).__name__}: {error})") from None
     try:
@@ -188,6 +195,7 @@ def load_result(folder: Path) -> RunResult:
         initial_state_bias=bias,
         hyperparams=plain(hyperparams),
         folder=str(folder),
+        resumes=resumes,
         eval_freq=None if eval_freq is None else int(eval_freq),
         eval_episodes=None if eval_episodes is None else int(eval_episodes),
         studies=[str(key) for key in args.get("studies") or []],

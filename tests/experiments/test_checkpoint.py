@@ -12,6 +12,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_sera.experiments import engine
 from sb3_sera.experiments.checkpoint import CHECKPOINT_DIR, has_checkpoint
+from sb3_sera.experiments.records import load_result
 from sb3_sera.experiments.folders import assign_folders
 from sb3_sera.experiments.registry import algorithm_classes
 from sb3_sera.experiments.specs import make_spec
@@ -69,6 +70,10 @@ def test_an_interrupted_run_resumes_to_the_same_final_parameters(tmp_path, monke
     monitors = [pd.read_csv(folder / "0.monitor.csv", skiprows=1)[columns] for folder in (straight, resumed)]
     assert monitors[0].equals(monitors[1])
     assert not (resumed / CHECKPOINT_DIR).exists()
+    # The records say whether, from where and under which code a run was resumed
+    (resume,) = load_result(resumed).resumes
+    assert resume["from_step"] == _Stop.at // 100 * 100 and resume["code_before"] == resume["code_after"]
+    assert load_result(straight).resumes == [] and not (resumed / engine.RESUMES_FILE).exists()
 
 
 _ENV_ACROSS_PROCESSES = """
