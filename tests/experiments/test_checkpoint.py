@@ -12,8 +12,8 @@ from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_sera.experiments import engine
 from sb3_sera.experiments.checkpoint import CHECKPOINT_DIR, has_checkpoint
-from sb3_sera.experiments.records import load_result
 from sb3_sera.experiments.folders import assign_folders
+from sb3_sera.experiments.records import load_result
 from sb3_sera.experiments.registry import algorithm_classes
 from sb3_sera.experiments.specs import make_spec
 from tests.helpers import CTDE_TASK
