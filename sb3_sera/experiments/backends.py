@@ -5,6 +5,7 @@ run its folder, makes the runs, and names the failed ones once all have ended.
 """
 
 import contextlib
+import io
 import os
 import shutil
 import signal
@@ -20,9 +21,10 @@ from typing import Any
 
 from tqdm import tqdm
 
+from sb3_sera.experiments.checkpoint import checkpoint_step, has_checkpoint
 from sb3_sera.experiments.engine import steps_done, train_one
 from sb3_sera.experiments.folders import assign_folders, output_lock
-from sb3_sera.experiments.records import RunResult
+from sb3_sera.experiments.records import RunResult, env_name
 from sb3_sera.experiments.specs import RunSpec
 
 
@@ -104,6 +106,47 @@ def execute(
     return [outcome for outcome in outcomes if isinstance(outcome, RunResult)]
 
 
+def interruption_message(finished: int, total: int, unfinished: Sequence[tuple[RunSpec, Path]]) -> str:
+    """
+    What an interruption leaves: how many runs finished, which unfinished ones the same command resumes and from
+    which step (their last checkpoint's), which it starts again from step 0, and which had not started (their
+    folders, which held their records alone, are removed).
+    """
+    resumed, restarted, removed = [], [], []
+    for spec, folder in unfinished:
+        run = f"{spec.variant} seed {spec.seed} ({folder})"
+        step = checkpoint_step(folder)
+        if has_checkpoint(folder):
+            resumed.append(f"{run} from step {step:,}" if step is not None else f"{run} from its last checkpoint")
+        elif {path.name for path in folder.iterdir()} <= {env_name(spec.env_id)}:
+            shutil.rmtree(folder, ignore_errors=True)
+            removed.append(run)
+        else:
+            every = f"one is taken every {spec.checkpoint_freq:,} steps" if spec.checkpoint_freq else "checkpoints are off"
+            restarted.append(f"{run} (no checkpoint yet: {every})")
+    parts = [f"interrupted: {finished} of {total} run(s) finished"]
+    if resumed:
+        parts.append(f"the same command resumes {'; '.join(resumed)}")
+    if restarted:
+        parts.append(f"it starts again from step 0 {'; '.join(restarted)}")
+    if removed:
+        parts.append(f"{len(removed)} had not started and left no folder: {'; '.join(removed)}")
+    return "; ".join(parts)
+
+
+class _OutputOrNothing(io.TextIOBase):
+    """Standard error, or nothing once it is closed (a pipe whose reader ended): the runs never stop for their bar."""
+
+    def write(self, text: str) -> int:
+        with contextlib.suppress(OSError, ValueError):
+            sys.stderr.write(text)
+        return len(text)
+
+    def flush(self) -> None:
+        with contextlib.suppress(OSError, ValueError):
+            sys.stderr.flush()
+
+
 def _execute_locally(
     specs: Sequence[RunSpec], folders: Sequence[Path], n_jobs: int | None, progress_bar: bool
 ) -> list[RunResult | BaseException]:
@@ -117,7 +160,8 @@ def _execute_locally(
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler) if main_thread else None
     total = sum(spec.n_timesteps for spec in specs)
     try:
-        with tqdm(total=total, desc=f"{len(specs)} runs", unit="step", disable=not progress_bar) as bar:
+        bar_output = _OutputOrNothing()
+        with tqdm(total=total, desc=f"{len(specs)} runs", unit="step", disable=not progress_bar, file=bar_output) as bar:
             futures = {
                 pool.submit(train_one, spec, folder): index
                 for index, (spec, folder) in enumerate(zip(specs, folders, strict=True))
@@ -132,15 +176,17 @@ def _execute_locally(
                 steps = sum(steps_done(folder, spec.n_timesteps) for spec, folder in zip(specs, folders, strict=True))
                 bar.set_postfix_str(f"{len(outcomes)}/{len(specs)} runs ended")
                 bar.update(max(steps - bar.n, 0))
-    except KeyboardInterrupt:
+    except BaseException as error:
+        # Whatever stops the loop (Ctrl-C, SIGTERM, an output that closed) stops every worker, which ignores Ctrl-C
         for process in list(getattr(pool, "_processes", {}).values()):
             process.kill()
         pool.shutdown(wait=False, cancel_futures=True)
-        unfinished = [str(folder) for index, folder in enumerate(folders) if index not in outcomes]
-        raise Interrupted(
-            f"interrupted: {len(outcomes)} of {len(specs)} run(s) finished; {len(unfinished)} unfinished, left without "
-            f"result.json in {', '.join(unfinished)}: the same command resumes them from their last checkpoints"
-        ) from None
+        if not isinstance(error, KeyboardInterrupt):
+            raise
+        unfinished = [
+            (spec, folder) for index, (spec, folder) in enumerate(zip(specs, folders, strict=True)) if index not in outcomes
+        ]
+        raise Interrupted(interruption_message(len(outcomes), len(specs), unfinished)) from None
     finally:
         if main_thread:
             signal.signal(signal.SIGTERM, previous)

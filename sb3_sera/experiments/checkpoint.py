@@ -38,6 +38,8 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.monitor import Monitor, ResultsWriter
 from stable_baselines3.common.vec_env import VecEnv
 
+#: A checkpoint's step, in plain text
+STEP_FILE = "step"
 #: Steps between checkpoints by default: a 50K-step run keeps at most 10K steps of work at risk
 CHECKPOINT_FREQ = 10_000
 #: A run's checkpoint folder
@@ -188,6 +190,8 @@ def save_checkpoint(model: BaseAlgorithm, folder: Path, callback: BaseCallback |
     }
     with (partial / "state.pkl").open("wb") as handle:
         cloudpickle.dump(state, handle, protocol=pickle.HIGHEST_PROTOCOL)
+    # The step in plain text, for what a command says of the run without loading it
+    (partial / STEP_FILE).write_text(str(model.num_timesteps))
     if target.exists():
         old = folder / f"{CHECKPOINT_DIR}.old"
         shutil.rmtree(old, ignore_errors=True)
@@ -213,6 +217,15 @@ def checkpoint_dir(folder: Path) -> Path | None:
 def has_checkpoint(folder: Path) -> bool:
     """Whether ``folder`` holds a whole checkpoint."""
     return checkpoint_dir(folder) is not None
+
+
+def checkpoint_step(folder: Path) -> int | None:
+    """The step of ``folder``'s whole checkpoint (None: none, or one written before its step was recorded)."""
+    source = checkpoint_dir(folder)
+    try:
+        return None if source is None else int((source / STEP_FILE).read_text())
+    except (OSError, ValueError):
+        return None
 
 
 def load_checkpoint(

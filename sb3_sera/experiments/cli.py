@@ -1,6 +1,7 @@
 """The ``sb3-sera`` command line (also ``python -m sb3_sera``)."""
 
 import argparse
+import contextlib
 import os
 import re
 import sys
@@ -119,6 +120,14 @@ class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefau
         return text if "default:" in text else super()._get_help_string(action) or ""
 
 
+def _exit(code: int, message: str) -> None:
+    """Exit with ``code`` after saying ``message`` on standard error, if it is still open (a pipe's reader may
+    have ended with the same Ctrl-C): the exit never waits on an output that is gone."""
+    with contextlib.suppress(OSError, ValueError):
+        print(message, file=sys.stderr, flush=True)
+    sys.exit(code)
+
+
 def plain_text(doc: str | None) -> str:
     """A module's docstring for the terminal: Sphinx roles and double backquotes as plain text."""
     text = re.sub(r":\w+:`~?(?:[\w.]*\.)?([\w]+)`", r"\1", doc or "")
@@ -233,9 +242,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     try:
         args.func(args)
     except KeyboardInterrupt:
-        parser.exit(130, f"sb3-sera {args.command}: interrupted\n")
+        _exit(130, f"sb3-sera {args.command}: interrupted")
     except Interrupted as error:
-        parser.exit(130, f"sb3-sera {args.command}: {error}\n")
+        _exit(130, f"sb3-sera {args.command}: {error}")
     except (ValueError, RuntimeError, FileNotFoundError, yaml.YAMLError) as error:
         # A user's mistake or a failed run: one line, no traceback
         message = " ".join(str(error).split())

@@ -23,13 +23,26 @@ hyperparams: {learning_starts: 100, batch_size: 32}
 """
 
 
-def start_bench(tmp_path: Path, out: Path) -> subprocess.Popen:
+def start_bench(tmp_path: Path, out: Path, *flags: str, stderr: int = subprocess.PIPE) -> subprocess.Popen:
     grid = tmp_path / "grid.yml"
     grid.write_text(GRID)
     return subprocess.Popen(
-        [sys.executable, "-m", "sb3_sera", "bench", str(grid), "--out", str(out), "--n-jobs", "1", "--num-threads", "1"],
+        [
+            sys.executable,
+            "-m",
+            "sb3_sera",
+            "bench",
+            str(grid),
+            "--out",
+            str(out),
+            "--n-jobs",
+            "1",
+            "--num-threads",
+            "1",
+            *flags,
+        ],
         stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
+        stderr=stderr,
         text=True,
         env={**os.environ, "OMP_NUM_THREADS": "1"},
         start_new_session=True,  # its own process group, as a terminal's foreground job
@@ -67,10 +80,48 @@ def test_one_ctrl_c_stops_every_worker(tmp_path):
             os.killpg(bench.pid, signal.SIGKILL)
     assert bench.returncode == 130
     lines = stderr.strip().splitlines()
-    assert lines[-1].startswith("sb3-sera bench: interrupted: 0 of 2 run(s) finished; 2 unfinished")
-    assert "Traceback" not in stderr
+    # One worker: the first run started without a checkpoint yet, the second never started and leaves no folder
+    started, waiting = (out / "sac" / "Pendulum-v1_1"), (out / "serasac" / "Pendulum-v1_1")
+    assert lines[-1] == (
+        "sb3-sera bench: interrupted: 0 of 2 run(s) finished; it starts again from step 0 sac seed 0 "
+        f"({started}) (no checkpoint yet: one is taken every 10,000 steps); 1 had not started and left no folder: "
+        f"serasac seed 0 ({waiting})"
+    )
+    assert "Traceback" not in stderr and started.exists() and not waiting.exists()
     assert_training_stopped(monitor)
     assert not list(out.glob("*/*/result.json"))
+
+
+def test_one_ctrl_c_stops_every_worker_with_the_output_piped_and_says_where_each_run_resumes(tmp_path):
+    # As `sb3-sera bench ... 2>&1 | tee log` and Ctrl-C: the reader of the pipe ends at once, the command after it
+    out = tmp_path / "out"
+    bench = start_bench(tmp_path, out, "--checkpoint-freq", "300", stderr=subprocess.STDOUT)
+    try:
+        monitor = wait_for_training(out)
+        while not list(out.glob("*/*/checkpoint/step")):
+            time.sleep(0.5)
+        assert bench.stdout is not None
+        bench.stdout.close()
+        os.killpg(bench.pid, signal.SIGINT)
+        bench.wait(timeout=30)
+    finally:
+        if bench.poll() is None:
+            os.killpg(bench.pid, signal.SIGKILL)
+    assert bench.returncode == 130
+    assert_training_stopped(monitor)
+    # The same command again, told where it resumes
+    again = start_bench(tmp_path, out, "--checkpoint-freq", "300")
+    try:
+        deadline = time.monotonic() + 120
+        while not list(out.glob("*/*/.resumes.json")) and time.monotonic() < deadline:
+            time.sleep(0.5)
+        os.killpg(again.pid, signal.SIGINT)
+        _, stderr = again.communicate(timeout=30)
+    finally:
+        if again.poll() is None:
+            os.killpg(again.pid, signal.SIGKILL)
+    assert "interrupted: 0 of 2 run(s) finished; the same command resumes sac seed 0" in stderr
+    assert " from step " in stderr.strip().splitlines()[-1]
 
 
 def test_a_killed_command_takes_its_workers_with_it(tmp_path):
