@@ -144,7 +144,7 @@ def _linear_layers(actor: nn.Module, stochastic: bool) -> list[nn.Linear]:
 class StackedCTDEActor(CTDEActor):
     """
     The agents' actors (SB3's SAC or TD3 actor, ``agent_actor_class``) as one stacked network: see the module's
-    docstring. Takes :class:`~sb3_sera.ctde.policies.CTDEActor`'s arguments; ``share_parameters`` keeps one network
+    docstring. Takes :class:`~sb3_sera.ctde.actors.CTDEActor`'s arguments; ``share_parameters`` keeps one network
     that all agents run in one batch.
     """
 

@@ -19,6 +19,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper, unwrap_vec_normalize
 
+from sb3_sera.common.arguments import check_keywords
 from sb3_sera.common.hyperparameters import check_int
 from sb3_sera.common.naming import NamedRuns
 from sb3_sera.common.tuning import TuningSpace
@@ -39,8 +40,11 @@ ROUTING_LATENT_DRAWS = 8
 
 
 def _signature() -> inspect.Signature:
-    """SAC's hyperparameters and ``latent_dim`` (keyword only): what rl-zoo3 files and bench grids may set."""
-    parameters = list(inspect.signature(MASAC).parameters.values())
+    """
+    SAC's hyperparameters and ``latent_dim`` (keyword only): what rl-zoo3 files and bench grids may set (not MASAC's
+    ``compile_update``: IET's step is SB3 SAC's, eager).
+    """
+    parameters = [p for p in inspect.signature(MASAC).parameters.values() if p.name != "compile_update"]
     latent = inspect.Parameter("latent_dim", inspect.Parameter.KEYWORD_ONLY, default=DEFAULT_LATENT_DIM, annotation=int)
     return inspect.Signature([*parameters, latent])
 
@@ -82,6 +86,8 @@ class IET(NamedRuns, MASAC):
                 f"IET trains CTDE tasks with policy='CTDEPolicy' (per-agent soft-modular actors), got {policy!r}; "
                 "on a single-agent task use SERASAC, SAC or SUNRISE"
             )
+        # Named against IET's own keywords before MASAC takes its compile_update, which IET has not
+        check_keywords(type(self), kwargs, policy)
         self.latent_dim = check_int("latent_dim", latent_dim, 1)
         #: The latents' generator state when the model was saved (see :meth:`save` and :meth:`load`)
         self._latent_rng_state: dict[str, Any] | None = None

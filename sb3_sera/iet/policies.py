@@ -110,7 +110,7 @@ class IETAgentActor(SACActor):
 class IETActor(CTDEActor):
     """
     The agents' IET actors: agent ``i``'s actor reads its own observation and row ``i`` of the ``"latent"`` entry.
-    Takes :class:`~sb3_sera.ctde.policies.CTDEActor`'s arguments.
+    Takes :class:`~sb3_sera.ctde.actors.CTDEActor`'s arguments.
     """
 
     def agent_input_space(self, observation_space: spaces.Dict, agent: str) -> spaces.Box:
