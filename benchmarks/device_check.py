@@ -18,6 +18,7 @@ machine's budget (about 6 minutes on an H200, the install included).
 
     bash benchmarks/device_check.sh                       # the wheels in .whl/, see docs/guide/developer.md
     python benchmarks/device_check.py --sections speed --blocks 5
+    python benchmarks/device_check.py --device cpu --env Pendulum-v1 --blocks 1 --block-steps 2   # a smoke run
 """
 
 import argparse
@@ -41,14 +42,15 @@ from sb3_sera.common.mujoco_log import route_mujoco_warnings
 SECTIONS = ("cudagraphs", "equality", "speed")
 
 
-def single_agent_models(env_id: str) -> dict[str, Callable[[dict[str, Any]], BaseAlgorithm]]:
-    """The single-agent rows' constructors (SBX's where it is installed)."""
+def single_agent_models(env_id: str, cuda: bool) -> dict[str, Callable[[dict[str, Any]], BaseAlgorithm]]:
+    """The single-agent rows' constructors (SBX's where it is installed; CUDA graphs on a GPU only)."""
     table: dict[str, Callable[[dict[str, Any]], BaseAlgorithm]] = {
         "SB3 SAC eager": lambda kw: SAC("MlpPolicy", env_id, **kw),
         "SERASAC eager": lambda kw: SERASAC("MlpPolicy", env_id, **kw),
         "SERASAC compile_update=True": lambda kw: SERASAC("MlpPolicy", env_id, compile_update=True, **kw),
-        "SERASAC reduce-overhead": lambda kw: SERASAC("MlpPolicy", env_id, compile_update="reduce-overhead", **kw),
     }
+    if cuda:
+        table["SERASAC reduce-overhead"] = lambda kw: SERASAC("MlpPolicy", env_id, compile_update="reduce-overhead", **kw)
     if importlib.util.find_spec("sbx") is not None:
         import sbx
 
@@ -58,15 +60,15 @@ def single_agent_models(env_id: str) -> dict[str, Callable[[dict[str, Any]], Bas
     return table
 
 
-def multi_agent_models(env_id: str) -> dict[str, Callable[[dict[str, Any]], BaseAlgorithm]]:
-    """The multi-agent rows' constructors."""
+def multi_agent_models(env_id: str, cuda: bool) -> dict[str, Callable[[dict[str, Any]], BaseAlgorithm]]:
+    """The multi-agent rows' constructors (compiled with CUDA graphs on a GPU, without on a CPU)."""
+    mode: Any = "reduce-overhead" if cuda else True
+    name = "reduce-overhead" if cuda else "compile_update=True"
     return {
         "SERASAC-MA eager": lambda kw: SERASAC("CTDEPolicy", gym.make(env_id), **kw),
-        "SERASAC-MA reduce-overhead": lambda kw: SERASAC(
-            "CTDEPolicy", gym.make(env_id), compile_update="reduce-overhead", **kw
-        ),
+        f"SERASAC-MA {name}": lambda kw: SERASAC("CTDEPolicy", gym.make(env_id), compile_update=mode, **kw),
         "MASAC eager": lambda kw: MASAC("CTDEPolicy", gym.make(env_id), **kw),
-        "MASAC reduce-overhead": lambda kw: MASAC("CTDEPolicy", gym.make(env_id), compile_update="reduce-overhead", **kw),
+        f"MASAC {name}": lambda kw: MASAC("CTDEPolicy", gym.make(env_id), compile_update=mode, **kw),
     }
 
 
@@ -104,18 +106,21 @@ def main() -> None:
     parser.add_argument("--learning-starts", type=int, default=1000)
     parser.add_argument("--equality-steps", type=int, default=100)
     parser.add_argument("--aggregations", nargs="+", default=["median"], help="actor aggregations compared")
+    parser.add_argument("--device", default="cuda", help="cuda (the check), or cpu (a smoke run, without CUDA graphs)")
     args = parser.parse_args()
-    if not th.cuda.is_available():
+    cuda = args.device.startswith("cuda")
+    if cuda and not th.cuda.is_available():
         raise SystemExit("device_check.py checks a CUDA device, and torch sees none: run it on the GPU machine")
     import sb3_sera.ctde.tasks  # noqa: F401  (registers the multi-agent ids)
 
     started = time.perf_counter()
     rows = []
-    common = dict(seed=0, learning_starts=args.learning_starts, device="cuda", verbose=0)
+    common = dict(seed=0, learning_starts=args.learning_starts, device=args.device, verbose=0)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", CUDAGraphSkipWarning)
-        single = build(single_agent_models(args.env), common) if {"cudagraphs", "speed"} & set(args.sections) else {}
-        multi = build(multi_agent_models(args.ma_env), common) if {"cudagraphs", "speed"} & set(args.sections) else {}
+        timed = {"cudagraphs", "speed"} & set(args.sections)
+        single = build(single_agent_models(args.env, cuda), common) if timed else {}
+        multi = build(multi_agent_models(args.ma_env, cuda), common) if timed else {}
     if "cudagraphs" in args.sections:
         from torch._dynamo.utils import counters
 
@@ -125,14 +130,15 @@ def main() -> None:
     if "equality" in args.sections:
         report = [step for step in (1, 40, 100) if step <= args.equality_steps]
         for aggregation in args.aggregations:
-            differences = compiled_vs_eager.differences(aggregation, "compiled", args.equality_steps, report, "cuda")
+            differences = compiled_vs_eager.differences(aggregation, "compiled", args.equality_steps, report, args.device)
             cells = ", ".join(f"after {step}: {value:.1e} ({name})" for step, (value, name) in differences.items())
             rows.append(f"| compiled vs eager | {aggregation} | {cells} | |")
     if "speed" in args.sections:
         rows += speed_rows(single, "SB3 SAC eager", args)
         rows += speed_rows(multi, "SERASAC-MA eager", args)
     seconds = time.perf_counter() - started
-    print(f"\n{th.cuda.get_device_name()}, torch {th.__version__}, CUDA {th.version.cuda}; {seconds:.0f} s")
+    device = f"{th.cuda.get_device_name()}, CUDA {th.version.cuda}" if cuda else "CPU"
+    print(f"\n{device}, torch {th.__version__}; {seconds:.0f} s")
     print("| check | what | value | ratio |\n|---|---|---|---|")
     print("\n".join(rows), flush=True)
 

@@ -34,6 +34,12 @@ TINY_PEERS = ["--env", "Pendulum-v1", "--learning-starts", "20", "--blocks", "1"
             ["--ma-env", "sb3_sera/SimpleSpread-v0", *TINY_PEERS[:4], "--warmup-blocks", "0", *TINY_TIMING],
             "SERASAC-MA-loop",
         ),
+        # On a CPU, the part of the GPU check that compiles once (the speed rows compile four models: minutes)
+        (
+            "device_check.py",
+            ["--device", "cpu", "--sections", "equality", "--equality-steps", "2"],
+            "| compiled vs eager | median |",
+        ),
         ("memory.py", ["--env", "Pendulum-v1", "--buffer-size", "1000", "--gradient-steps", "2"], "SERASAC"),
         (
             "checkpoint_cost.py",
