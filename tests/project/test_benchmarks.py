@@ -40,6 +40,7 @@ TINY_PEERS = ["--env", "Pendulum-v1", "--learning-starts", "20", "--blocks", "1"
             ["--device", "cpu", "--sections", "equality", "--equality-steps", "2"],
             "| compiled vs eager | median |",
         ),
+        ("type_one_error.py", ["--trials", "5"], "| skewed | 10-run arm |"),
         ("memory.py", ["--env", "Pendulum-v1", "--buffer-size", "1000", "--gradient-steps", "2"], "SERASAC"),
         (
             "checkpoint_cost.py",
