@@ -50,6 +50,21 @@ def check_shareable(observation_space: spaces.Dict, agent_action_dims: dict[str,
         )
 
 
+def make_agent_actor(
+    agent_actor_class: type[BasePolicy], agent_actor_kwargs: dict[str, Any], box: spaces.Box, action_size: int
+) -> BasePolicy:
+    """One agent's SB3 actor reading ``box`` (flattened) and acting in ``[-1, 1]^action_size``."""
+    return agent_actor_class(
+        **{
+            **agent_actor_kwargs,
+            "observation_space": box,
+            "action_space": spaces.Box(-1.0, 1.0, (action_size,), dtype=np.float32),
+            "features_extractor": FlattenExtractor(box),
+            "features_dim": get_flattened_obs_dim(box),
+        }
+    )
+
+
 class CTDEActor(BaseModel):
     """
     One SB3 actor per agent, each reading only its agent's observation; the joint action is their concatenation
@@ -80,15 +95,7 @@ class CTDEActor(BaseModel):
         actors: dict[str, nn.Module] = {}
         for agent in self.agents[:1] if share_parameters else self.agents:
             box = self.agent_input_space(observation_space, agent)
-            actors[agent] = agent_actor_class(
-                **{
-                    **agent_actor_kwargs,
-                    "observation_space": box,
-                    "action_space": spaces.Box(-1.0, 1.0, (agent_action_dims[agent],), dtype=np.float32),
-                    "features_extractor": FlattenExtractor(box),
-                    "features_dim": get_flattened_obs_dim(box),
-                }
-            )
+            actors[agent] = make_agent_actor(agent_actor_class, agent_actor_kwargs, box, agent_action_dims[agent])
         self.agent_actors = nn.ModuleDict(actors)
 
     def agent_input_space(self, observation_space: spaces.Dict, agent: str) -> spaces.Box:
@@ -293,15 +300,9 @@ class StackedCTDEActor(CTDEActor):
         # Built with torch's CPU generator forked: its layers' initial draws, overwritten below, leave the training's
         # random state as it was
         with th.random.fork_rng(devices=[]):
-            actor = self.agent_actor_class(
-                **{
-                    **self.agent_actor_kwargs,
-                    "observation_space": box,
-                    "action_space": spaces.Box(-1.0, 1.0, (self.action_dims[index],), dtype=np.float32),
-                    "features_extractor": FlattenExtractor(box),
-                    "features_dim": self.input_dims[index],
-                }
-            ).to(self.mu.weight.device)
+            actor = make_agent_actor(self.agent_actor_class, self.agent_actor_kwargs, box, self.action_dims[index]).to(
+                self.mu.weight.device
+            )
         row = 0 if self.share_parameters else index
         with th.no_grad():
             for stacked, layer in zip(self.stacked_layers(), _linear_layers(actor, self.stochastic), strict=True):
