@@ -1,10 +1,11 @@
 """
 What a run's checkpoint costs (``sb3_sera.experiments.checkpoint``): its size on disk and the time to write and to
-read it, for SERASAC on HalfCheetah-v5 with a replay buffer holding ``--filled`` transitions (the buffer's contents
-are filled in directly: what is measured is their size, not how they were collected).
+read it, for SERASAC on HalfCheetah-v5 (or ``--env``: a multi-agent task with the CTDE policy) with a replay buffer
+holding ``--filled`` transitions (the buffer's contents are filled in directly: what is measured is their size, not how
+they were collected). Reading includes building the environment anew and writing its saved state into it.
 
     OMP_NUM_THREADS=1 python benchmarks/checkpoint_cost.py                 # 300K transitions, the default buffer (1M)
-    OMP_NUM_THREADS=1 python benchmarks/checkpoint_cost.py --filled 50000
+    OMP_NUM_THREADS=1 python benchmarks/checkpoint_cost.py --env sb3_sera/HalfCheetah-6x1-v0 --filled 50000
 """
 
 import argparse
@@ -33,14 +34,16 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as folder:
         run = Path(folder)
         env = make_vec_env(args.env, n_envs=1, seed=0, monitor_dir=str(run))
-        model = SERASAC("MlpPolicy", env, buffer_size=args.buffer_size, learning_starts=100, batch_size=64, seed=0)
+        policy = "CTDEPolicy" if args.env.startswith("sb3_sera/") else "MlpPolicy"
+        model = SERASAC(policy, env, buffer_size=args.buffer_size, learning_starts=100, batch_size=64, seed=0)
         model.learn(200)
         buffer = model.replay_buffer
         assert buffer is not None
         rng = np.random.default_rng(0)
         for name in ("observations", "next_observations", "actions", "rewards"):
-            array = getattr(buffer, name)
-            array[: args.filled] = rng.standard_normal(array[: args.filled].shape).astype(array.dtype)
+            value = getattr(buffer, name)
+            for array in value.values() if isinstance(value, dict) else [value]:
+                array[: args.filled] = rng.standard_normal(array[: args.filled].shape).astype(array.dtype)
         buffer.pos, buffer.full = args.filled % args.buffer_size, args.filled >= args.buffer_size
         writes, reads = [], []
         for _ in range(args.repeats):
@@ -48,7 +51,7 @@ def main() -> None:
             save_checkpoint(model, run, None, elapsed_s=0.0)
             writes.append(time.perf_counter() - start)
             start = time.perf_counter()
-            load_checkpoint(SERASAC, run, "cpu", None)
+            load_checkpoint(SERASAC, run, "cpu", make_vec_env(args.env, n_envs=1, seed=0), None)
             reads.append(time.perf_counter() - start)
         files = {path.name: path.stat().st_size for path in (run / CHECKPOINT_DIR).iterdir()}
     total = sum(files.values())

@@ -8,35 +8,45 @@ resumed ``learn()`` begins exactly where the interrupted one would have gone on.
 - ``model.zip``: the model as ``save`` writes it (parameters, optimizers, the algorithm's own state such as SERA's
   step-size statistics);
 - ``replay_buffer.pkl``: the filled part of the replay buffer and its position (not the empty capacity);
-- ``state.pkl``: what ``save`` leaves out and a run needs to go on bit for bit: the step count, the last
-  observation and episode starts, the episode-info buffer, every random generator (Python's, NumPy's, torch's, the
-  action space's), the training and evaluation environments with their state (the MuJoCo simulation, the envs'
-  generators, the episode under way), the evaluation callback's records and the number of monitor rows written.
+- ``state.pkl``: what ``save`` leaves out and a run needs to go on bit for bit, all of it plain data
+  (:mod:`.env_state`: numbers, arrays and containers, never a class): the step count, the last observation and
+  episode starts, the episode-info buffer, every random generator (Python's, NumPy's, torch's, the action space's),
+  the state of the training and evaluation environments (each wrapper's counters, the monitor's episodes, the
+  simulator's state, the envs' generators, the episode under way), the evaluation callback's records and the number
+  of monitor rows written.
 
 The checkpoint is written into ``checkpoint.partial/`` and renamed into place, so a kill leaves the previous one
-whole. On resume the monitor file is cut back to the rows the checkpoint counted.
+whole. Resuming builds the environments anew with the run's own factories and writes their states into them; the
+monitor file is cut back to the rows the checkpoint counted. A task whose state cannot be written as data, or does not
+go back whole into a new environment, is found at the run's first checkpoint: the run goes on without checkpoints,
+and a warning names the task and the reason.
 """
 
-import importlib
-import io
-import pickle
 import random
 import shutil
-import sys
 import time
-from collections.abc import Iterator
+import warnings
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
-import cloudpickle
 import numpy as np
 import torch as th
-from gymnasium.utils import EzPickle
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.monitor import Monitor, ResultsWriter
 from stable_baselines3.common.vec_env import VecEnv
+
+from sb3_sera.experiments.env_state import (
+    StateNotCapturable,
+    capture,
+    check_round_trip,
+    dump_data,
+    load_data,
+    preserved_global_generators,
+    restore,
+)
 
 #: A checkpoint's step, in plain text
 STEP_FILE = "step"
@@ -63,52 +73,6 @@ CALLBACK_STATE = (
 )
 
 
-def _set_state(obj: Any, state: dict[str, Any]) -> None:
-    obj.__dict__.update(state)
-
-
-def _module_attribute(module: str, name: str) -> Any:
-    return getattr(importlib.import_module(module), name)
-
-
-def _rebound_class_reference(cls: type) -> tuple[str, str] | None:
-    """
-    Where a class rebound in its own module can still be found by name: ``(module, name)`` of a loaded module that
-    holds it, or None when its module holds it (the usual case) or no module does.
-
-    rl-zoo3 replaces ``gymnasium.wrappers.common.TimeLimit`` with its own subclass when imported; an env wrapped
-    before that (MaMuJoCo's inner single-agent env) keeps Gymnasium's class, which its module no longer names.
-    cloudpickle would pickle that class by value, and its methods by reference to Gymnasium's: a resumed process
-    would then build a copy of the class whose ``reset`` fails in ``super()``. This reference keeps the class itself.
-    """
-    name = cls.__name__
-    if "." in cls.__qualname__ or getattr(sys.modules.get(cls.__module__), name, None) is cls:
-        return None
-    for module_name, module in list(sys.modules.items()):
-        if module is not None and getattr(module, name, None) is cls:
-            return module_name, name
-    return None
-
-
-class _StatePickler(cloudpickle.Pickler):
-    """
-    Pickles environments with their state. Gymnasium's and PettingZoo's envs pickle as ``EzPickle`` (their
-    constructor's arguments: a new, unstarted env); this pickler writes their attributes instead (the MuJoCo
-    simulation, the random generator, the episode under way), leaving out pygame's rendering surfaces. A class
-    rebound in its module is pickled by where it is still found (:func:`_rebound_class_reference`).
-    """
-
-    def reducer_override(self, obj: Any) -> Any:
-        if isinstance(obj, EzPickle):
-            state = {k: None if type(v).__module__.startswith("pygame") else v for k, v in vars(obj).items()}
-            return object.__new__, (type(obj),), state, None, None, _set_state
-        if isinstance(obj, type):
-            reference = _rebound_class_reference(obj)
-            if reference is not None:
-                return _module_attribute, reference
-        return super().reducer_override(obj)
-
-
 def _monitors(env: VecEnv) -> list[Monitor]:
     return [wrapper for wrapper in _walk_wrappers(env) if isinstance(wrapper, Monitor)]
 
@@ -118,21 +82,6 @@ def _walk_wrappers(env: Any) -> Iterator[Any]:
         while sub_env is not None:
             yield sub_env
             sub_env = getattr(sub_env, "env", None)
-
-
-def _pickle_env(env: VecEnv) -> bytes:
-    """The environment pickled with its state (:class:`_StatePickler`), its monitors' files left out."""
-    monitors = _monitors(env)
-    writers = [monitor.results_writer for monitor in monitors]
-    for monitor in monitors:
-        monitor.results_writer = None
-    try:
-        data = io.BytesIO()
-        _StatePickler(data, protocol=pickle.HIGHEST_PROTOCOL).dump(env)
-        return data.getvalue()
-    finally:
-        for monitor, writer in zip(monitors, writers, strict=True):
-            monitor.results_writer = writer
 
 
 def _buffer_arrays(buffer: ReplayBuffer) -> dict[str, Any]:
@@ -158,29 +107,45 @@ def _restore_buffer(buffer: ReplayBuffer, saved: dict[str, Any]) -> None:
     buffer.pos, buffer.full = saved["pos"], saved["full"]
 
 
-def save_checkpoint(model: BaseAlgorithm, folder: Path, callback: BaseCallback | None, elapsed_s: float) -> Path:
-    """Write the run's checkpoint (see the module's docstring) into ``folder/checkpoint``, replacing the last one."""
+#: The names :func:`~.env_state.capture` gives the environments in messages
+ENV_NAMES = ("env", "eval_env")
+
+
+def save_checkpoint(
+    model: BaseAlgorithm,
+    folder: Path,
+    callback: BaseCallback | None,
+    elapsed_s: float,
+    env_states: tuple[Any, Any] | None = None,
+) -> Path:
+    """
+    Write the run's checkpoint (see the module's docstring) into ``folder/checkpoint``, replacing the last one.
+
+    :param env_states: the states of the training and evaluation environments, when already captured
+        (:func:`env_states`); by default captured here
+    :raises StateNotCapturable: where an environment's state cannot be written as data (nothing is written)
+    """
+    assert model.env is not None
+    training, evaluation = env_states if env_states is not None else _env_states(model, callback)
     target = folder / CHECKPOINT_DIR
     partial = folder / f"{CHECKPOINT_DIR}.partial"
     shutil.rmtree(partial, ignore_errors=True)
     partial.mkdir()
     model.save(partial / "model.zip")
     buffer = getattr(model, "replay_buffer", None)
-    with (partial / "replay_buffer.pkl").open("wb") as handle:
-        pickle.dump(None if buffer is None else _buffer_arrays(buffer), handle, protocol=pickle.HIGHEST_PROTOCOL)
-    assert model.env is not None
+    dump_data(None if buffer is None else _buffer_arrays(buffer), partial / "replay_buffer.pkl", check=False)
     state = {
         "model": {name: getattr(model, name, None) for name in MODEL_STATE},
         "ep_info_buffer": model.ep_info_buffer,
         "ep_success_buffer": model.ep_success_buffer,
         "random": random.getstate(),
-        "numpy": np.random.get_state(),
-        "torch": th.get_rng_state(),
-        "cuda": th.cuda.get_rng_state_all() if th.cuda.is_available() else None,
+        "numpy": np.random.get_state(legacy=False),
+        "torch": th.get_rng_state().numpy(),
+        "cuda": [state.numpy() for state in th.cuda.get_rng_state_all()] if th.cuda.is_available() else None,
         "action_space": model.action_space.np_random.bit_generator.state,
-        "env": _pickle_env(model.env),
+        "env": training,
         "callback": None if callback is None else {k: getattr(callback, k) for k in CALLBACK_STATE if hasattr(callback, k)},
-        "eval_env": None if callback is None else _pickle_env(callback.eval_env),  # type: ignore[attr-defined]
+        "eval_env": evaluation,
         "monitor_rows": [len(monitor.get_episode_rewards()) for monitor in _monitors(model.env)],
         "monitor_files": [
             None if monitor.results_writer is None else Path(monitor.results_writer.file_handler.name).name
@@ -188,8 +153,7 @@ def save_checkpoint(model: BaseAlgorithm, folder: Path, callback: BaseCallback |
         ],
         "elapsed_s": elapsed_s,
     }
-    with (partial / "state.pkl").open("wb") as handle:
-        cloudpickle.dump(state, handle, protocol=pickle.HIGHEST_PROTOCOL)
+    dump_data(state, partial / "state.pkl")
     # The step in plain text, for what a command says of the run without loading it
     (partial / STEP_FILE).write_text(str(model.num_timesteps))
     if target.exists():
@@ -201,6 +165,11 @@ def save_checkpoint(model: BaseAlgorithm, folder: Path, callback: BaseCallback |
     else:
         partial.rename(target)
     return target
+
+
+def _env_states(model: BaseAlgorithm, callback: BaseCallback | None) -> tuple[Any, Any]:
+    evaluation = None if callback is None else capture(callback.eval_env, ENV_NAMES[1])  # type: ignore[attr-defined]
+    return capture(model.env, ENV_NAMES[0]), evaluation
 
 
 def checkpoint_dir(folder: Path) -> Path | None:
@@ -229,41 +198,43 @@ def checkpoint_step(folder: Path) -> int | None:
 
 
 def load_checkpoint(
-    model_class: type[BaseAlgorithm], folder: Path, device: str, callback: BaseCallback | None
+    model_class: type[BaseAlgorithm], folder: Path, device: str, env: VecEnv, callback: BaseCallback | None
 ) -> tuple[BaseAlgorithm, float]:
     """
-    The model of ``folder``'s checkpoint with everything it needs to go on (see the module's docstring), the
-    evaluation callback's records and environment restored into ``callback``, and the monitor files cut back to
-    the checkpoint's rows.
+    The model of ``folder``'s checkpoint with everything it needs to go on (see the module's docstring): the
+    training environment's state written into ``env`` (built anew as the run built it, without monitor files: the
+    run's are reopened, cut back to the checkpoint's rows), the evaluation callback's records and its environment's
+    state into ``callback``.
 
     :return: the model, and the training time the run had spent up to the checkpoint
+    :raises StateMismatch: where an environment is not laid out as the saved one was
     """
     source = checkpoint_dir(folder)
     if source is None:
         raise FileNotFoundError(f"{folder}: no whole checkpoint to resume from")
-    with (source / "state.pkl").open("rb") as handle:
-        state = pickle.load(handle)
-    env = pickle.loads(state["env"])
-    for monitor, rows, name in zip(_monitors(env), state["monitor_rows"], state["monitor_files"], strict=True):
-        _reopen_monitor(monitor, rows, None if name is None else folder / name)
+    state = load_data(source / "state.pkl")
+    restore(env, state["env"], ENV_NAMES[0])
+    if callback is not None and state["eval_env"] is not None:
+        restore(callback.eval_env, state["eval_env"], ENV_NAMES[1])  # type: ignore[attr-defined]
     model = model_class.load(source / "model.zip", env=env, device=device)
-    with (source / "replay_buffer.pkl").open("rb") as handle:
-        buffer_state = pickle.load(handle)
+    buffer_state = load_data(source / "replay_buffer.pkl")
     if buffer_state is not None:
         _restore_buffer(model.replay_buffer, buffer_state)  # type: ignore[attr-defined]
+    # Once nothing else can fail: a checkpoint that cannot be loaded leaves the monitor files whole
+    for monitor, rows, name in zip(_monitors(env), state["monitor_rows"], state["monitor_files"], strict=True):
+        _reopen_monitor(monitor, rows, None if name is None else folder / name)
     for name, value in state["model"].items():
         setattr(model, name, value)
     model.ep_info_buffer, model.ep_success_buffer = state["ep_info_buffer"], state["ep_success_buffer"]
     if callback is not None and state["callback"] is not None:
         for name, value in state["callback"].items():
             setattr(callback, name, value)
-        callback.eval_env = pickle.loads(state["eval_env"])  # type: ignore[attr-defined]
     # Generators last: loading the model seeds them again
     random.setstate(state["random"])
     np.random.set_state(state["numpy"])
-    th.set_rng_state(state["torch"])
+    th.set_rng_state(th.from_numpy(state["torch"]))
     if state["cuda"] is not None and th.cuda.is_available():
-        th.cuda.set_rng_state_all(state["cuda"])
+        th.cuda.set_rng_state_all([th.from_numpy(cuda) for cuda in state["cuda"]])
     model.action_space.np_random.bit_generator.state = state["action_space"]
     return model, float(state["elapsed_s"])
 
@@ -284,15 +255,32 @@ class Checkpointer(BaseCallback):
     """
     Saves a checkpoint every ``every`` steps, when a rollout starts (after the previous gradient steps).
 
+    At its first checkpoint it checks that the environments' states go back whole into environments built anew by
+    ``make_envs``: where they do not (or cannot be written as data), it warns once, naming the task and the reason,
+    and takes no checkpoint in this run.
+
     :param folder: the run's folder
     :param evaluation: the run's evaluation callback, whose records the checkpoint keeps
+    :param make_envs: builds a new training and evaluation environment as the run built its own (no monitor files)
+    :param task: the run's task, for the warning
     :param elapsed_s: the training time spent before this ``learn()`` (a resumed run's)
     """
 
-    def __init__(self, folder: Path, every: int, evaluation: BaseCallback | None, elapsed_s: float = 0.0) -> None:
+    def __init__(
+        self,
+        folder: Path,
+        every: int,
+        evaluation: BaseCallback | None,
+        make_envs: Callable[[], tuple[VecEnv, VecEnv]],
+        task: str,
+        elapsed_s: float = 0.0,
+    ) -> None:
         super().__init__()
         self.folder, self.every, self.evaluation = folder, every, evaluation
+        self.make_envs, self.task = make_envs, task
         self.elapsed_s = elapsed_s
+        self.checked = False
+        self.refused: str | None = None
         self._next = 0
         self._started = 0.0
 
@@ -301,9 +289,37 @@ class Checkpointer(BaseCallback):
         self._next = (self.num_timesteps // self.every + 1) * self.every
 
     def _on_rollout_start(self) -> None:
-        if self.num_timesteps >= self._next:
-            save_checkpoint(self.model, self.folder, self.evaluation, self.elapsed_s + time.perf_counter() - self._started)
+        if self.refused is None and self.num_timesteps >= self._next:
+            states = None if self.checked else self._checked_states()
+            if self.refused is None:
+                elapsed = self.elapsed_s + time.perf_counter() - self._started
+                save_checkpoint(self.model, self.folder, self.evaluation, elapsed, states)
             self._next = (self.num_timesteps // self.every + 1) * self.every
+
+    def _checked_states(self) -> tuple[Any, Any] | None:
+        """The environments' states, checked to go back into new ones; None, with a warning, where they do not."""
+        self.checked = True
+        assert self.model.env is not None
+        with preserved_global_generators():
+            fresh = self.make_envs()
+        try:
+            training = check_round_trip(self.model.env, fresh[0], ENV_NAMES[0])
+            evaluation = None
+            if self.evaluation is not None:
+                eval_env = self.evaluation.eval_env  # type: ignore[attr-defined]
+                evaluation = check_round_trip(eval_env, fresh[1], ENV_NAMES[1])
+        except StateNotCapturable as error:
+            self.refused = str(error)
+            warnings.warn(
+                f"{self.task}: this run takes no checkpoints, so an interruption restarts it from step 0: the "
+                f"environment's state cannot be saved as data ({error})",
+                stacklevel=2,
+            )
+            return None
+        finally:
+            for env in fresh:
+                env.close()
+        return training, evaluation
 
     def _on_step(self) -> bool:
         return True

@@ -27,6 +27,7 @@ from sb3_sera.common.mujoco_log import route_mujoco_warnings
 from sb3_sera.ctde.env import STATE_KEY
 from sb3_sera.experiments.checkpoint import CHECKPOINT_DIR, Checkpointer, has_checkpoint, load_checkpoint
 from sb3_sera.experiments.evaluation import InitialStateBiasCallback
+from sb3_sera.experiments.folders import notice, set_aside
 from sb3_sera.experiments.policy_kwargs import parse_policy_kwargs
 from sb3_sera.experiments.records import RESULT_FILE, RunResult, env_name, load_result, plain, records_dir, write_atomic
 from sb3_sera.experiments.registry import RUN_KEYS, algorithm_classes
@@ -155,6 +156,11 @@ def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
     if (folder / RESULT_FILE).exists():
         return load_result(folder)
     route_mujoco_warnings()
+    # rl-zoo3 replaces Gymnasium's TimeLimit when imported (as `sb3-sera train` does): patched before any env is
+    # made, every env of every run is built alike, whatever the caller imported and when, and a resumed run's envs as
+    # its first process built them
+    import rl_zoo3.gym_patches  # noqa: F401
+
     # An interrupted run starts again here, maybe under newer code: its record names the code that runs now, and its
     # resumes (below) the code before
     records = records_dir(folder, spec.env_id) / "args.yml"
@@ -165,33 +171,56 @@ def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
         th.set_num_threads(spec.num_threads)
     env_kwargs = spec.hyperparams.get("env_kwargs") or {}
     n_envs = int(spec.hyperparams.get("n_envs", 1))
-    eval_env = make_vec_env(spec.env_id, n_envs=1, seed=spec.seed + 10_000, env_kwargs=env_kwargs)
-    callback = InitialStateBiasCallback(
-        eval_env,
-        eval_freq=max(spec.eval_freq // n_envs, 1),
-        n_eval_episodes=spec.n_eval_episodes,
-        log_path=str(folder),
-        verbose=0,
-    )
+
+    def make_env(monitor_dir: str | None = None) -> VecEnv:
+        return make_vec_env(spec.env_id, n_envs=n_envs, seed=spec.seed, monitor_dir=monitor_dir, env_kwargs=env_kwargs)
+
+    def make_eval_env() -> VecEnv:
+        return make_vec_env(spec.env_id, n_envs=1, seed=spec.seed + 10_000, env_kwargs=env_kwargs)
+
+    def make_both() -> tuple[VecEnv, VecEnv]:
+        return make_env(), make_eval_env()
+
+    def make_callback() -> InitialStateBiasCallback:
+        return InitialStateBiasCallback(
+            make_eval_env(),
+            eval_freq=max(spec.eval_freq // n_envs, 1),
+            n_eval_episodes=spec.n_eval_episodes,
+            log_path=str(folder),
+            verbose=0,
+        )
+
+    callback = make_callback()
     elapsed = 0.0
+    model: BaseAlgorithm | None = None
     if has_checkpoint(folder):
         # Interrupted: on from the last checkpoint, to the same final parameters as a run never interrupted
-        eval_env.close()
-        model, elapsed = load_checkpoint(algorithm_classes()[spec.algo], folder, spec.device, callback)
-        resume = {
-            "from_step": int(model.num_timesteps),
-            "at": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
-            "code_before": code_before,
-            "code_after": args.get("git_commit"),
-        }
-        write_atomic(folder / RESUMES_FILE, json.dumps([*_resumes(folder), resume]))
-    else:
-        env = make_vec_env(spec.env_id, n_envs=n_envs, seed=spec.seed, monitor_dir=str(folder), env_kwargs=env_kwargs)
-        model = make_model(spec, env, tensorboard_log=str(folder))
+        env = make_env()
+        try:
+            model, elapsed = load_checkpoint(algorithm_classes()[spec.algo], folder, spec.device, env, callback)
+        except Exception as error:  # whatever it is, the run starts again and the checkpoint is kept for inspection
+            env.close()
+            callback.eval_env.close()
+            aside = set_aside(folder, spec.env_id, error)
+            notice(
+                f"{folder}: its checkpoint cannot be loaded ({type(error).__name__}: {error}): the run is kept as "
+                f"{aside.name}, and starts again from step 0 in {folder.name}"
+            )
+            callback = make_callback()
+        else:
+            resume = {
+                "from_step": int(model.num_timesteps),
+                "at": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+                "code_before": code_before,
+                "code_after": args.get("git_commit"),
+            }
+            write_atomic(folder / RESUMES_FILE, json.dumps([*_resumes(folder), resume]))
+    if model is None:
+        model = make_model(spec, make_env(str(folder)), tensorboard_log=str(folder))
     callbacks: list[BaseCallback] = [callback, ProgressFile(folder / PROGRESS_FILE)]
     # A model that draws per-episode latents (IET) rebuilds its evaluation wrapper when training starts: not checkpointed
     if spec.checkpoint_freq > 0 and not hasattr(model, "with_latents"):
-        callbacks.append(Checkpointer(folder, spec.checkpoint_freq, callback, elapsed))
+        callbacks.append(Checkpointer(folder, spec.checkpoint_freq, callback, make_both, spec.env_id, elapsed))
     start = time.perf_counter()
     model.learn(
         spec.n_timesteps - model.num_timesteps,

@@ -9,8 +9,10 @@ the next free id, its records written at once (atomically). Every decision is an
 """
 
 import os
+import shutil
 import sys
 import time
+import traceback
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -33,11 +35,12 @@ from sb3_sera.experiments.records import (
 from sb3_sera.experiments.specs import RunSpec
 
 
-def _notice(message: str) -> None:
+def notice(message: str) -> None:
+    """Say ``message`` to the user: on standard error, where a command's progress and warnings go."""
     print(message, file=sys.stderr)
 
 
-def assign_folders(specs: Sequence[RunSpec], out_dir: str | Path, notice: Callable[[str], None] = _notice) -> list[Path]:
+def assign_folders(specs: Sequence[RunSpec], out_dir: str | Path, notice: Callable[[str], None] = notice) -> list[Path]:
     """
     A folder per spec (see the module's docstring): an earlier run's with the same records where its code is the
     code that runs now (finished: read back) or it is unfinished (run again there), else a new ``<env_name>_<id>``.
@@ -92,6 +95,30 @@ def assign_folders(specs: Sequence[RunSpec], out_dir: str | Path, notice: Callab
         taken.add(match)
         folders.append(match)
     return folders
+
+
+#: What a run set aside by :func:`set_aside` says of why, in its folder
+SET_ASIDE_FILE = "SET_ASIDE.txt"
+
+
+def set_aside(folder: Path, env_id: str, error: BaseException) -> Path:
+    """
+    Keep a run whose checkpoint cannot be loaded as ``<folder>.unresumable-<error type>`` (a name no command takes
+    for a run's folder), with everything in it and the reason in :data:`SET_ASIDE_FILE`, and make ``folder`` anew
+    with the run's records alone, for the run to start again there.
+
+    :return: where the run is kept
+    """
+    aside = folder.with_name(f"{folder.name}.unresumable-{type(error).__name__}")
+    for number in range(2, 1000):
+        if not aside.exists():
+            break
+        aside = folder.with_name(f"{folder.name}.unresumable-{type(error).__name__}-{number}")
+    folder.rename(aside)
+    reason = "".join(traceback.format_exception(error))
+    write_atomic(aside / SET_ASIDE_FILE, f"Its checkpoint could not be loaded; the run started again in {folder}.\n\n{reason}")
+    shutil.copytree(records_dir(aside, env_id), records_dir(folder, env_id))
+    return aside
 
 
 def _id_of(folder: Path, env_id: str) -> int:

@@ -77,28 +77,39 @@ def test_an_interrupted_run_resumes_to_the_same_final_parameters(tmp_path, monke
 
 
 _ENV_ACROSS_PROCESSES = """
-import pickle, sys
+import sys
+from pathlib import Path
 from stable_baselines3.common.env_util import make_vec_env
-from sb3_sera.experiments.checkpoint import _pickle_env
+from sb3_sera.experiments.env_state import StateMismatch, capture, dump_data, load_data, restore
+step, order, path = sys.argv[1], sys.argv[2], Path(sys.argv[3])
+if order == "before":
+    import rl_zoo3  # replaces Gymnasium's TimeLimit before MaMuJoCo wraps its inner env in it
 env = make_vec_env("sb3_sera/HalfCheetah-6x1-v0", n_envs=1, seed=0)
-import rl_zoo3  # replaces gymnasium's TimeLimit after MaMuJoCo wrapped its inner env in it
-path = sys.argv[2]
-if sys.argv[1] == "save":
+import rl_zoo3  # after MaMuJoCo wrapped its inner env, where order is "after"
+if step == "save":
     env.reset()
     for _ in range(995):
         env.step([env.action_space.sample()])
-    open(path, "wb").write(_pickle_env(env))
+    dump_data(capture(env), path)
 else:
-    env = pickle.loads(open(path, "rb").read())
+    try:
+        restore(env, load_data(path))
+    except StateMismatch as error:
+        sys.exit(f"mismatch: {error}")
     steps = [env.step([env.action_space.sample()])[2][0] for _ in range(10)]
     assert any(steps), "the episode should have ended"
 """
 
 
-def test_a_mamujoco_env_pickled_after_rl_zoo3_patched_timelimit_resets_in_a_new_process(tmp_path):
-    # A resumed run loads its environment in a new process: there, MaMuJoCo's episode must end and reset
-    script, pickled = tmp_path / "env_across_processes.py", tmp_path / "env.pkl"
+@pytest.mark.parametrize("order", ["before", "after"])
+def test_a_mamujoco_env_state_is_data_that_a_new_process_restores_whenever_rl_zoo3_is_imported(tmp_path, order):
+    # Saved in one process, restored in another into an env built the same way: the episode goes on, ends and resets
+    script, saved = tmp_path / "env_across_processes.py", tmp_path / "env.pkl"
     script.write_text(_ENV_ACROSS_PROCESSES)
     for step in ("save", "load"):
-        done = subprocess.run([sys.executable, str(script), step, str(pickled)], capture_output=True, text=True)
+        done = subprocess.run([sys.executable, str(script), step, order, str(saved)], capture_output=True, text=True)
         assert done.returncode == 0, done.stderr[-2000:]
+    # An env built otherwise (Gymnasium's TimeLimit where rl-zoo3's was) is named, not restored into
+    other = "after" if order == "before" else "before"
+    done = subprocess.run([sys.executable, str(script), "load", other, str(saved)], capture_output=True, text=True)
+    assert done.returncode == 1 and "mismatch: env.envs[0]" in done.stderr and "TimeLimit" in done.stderr

@@ -1,0 +1,106 @@
+"""
+Resuming as users resume: the command line in a process of its own, Ctrl-C (SIGINT to its process group) part way,
+then the same command again in a new process, on each kind of task; the run ends as an uninterrupted one does.
+"""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch as th
+
+from sb3_sera import SERASAC
+from sb3_sera.experiments.records import load_result
+from tests.helpers import CTDE_TASK
+
+# A classic-control task, a MuJoCo task, a MaMuJoCo task and a PettingZoo MPE task, with episodes short enough for
+# several to end before and after the interruption
+TASKS = {
+    "classic-control": ("Pendulum-v1", 100),
+    "mujoco": ("HalfCheetah-v5", 100),
+    "mamujoco": ("sb3_sera/HalfCheetah-6x1-v0", 100),
+    "mpe": (CTDE_TASK, 25),
+}
+STEPS, EVERY = 500, 100
+
+
+def compare(task: str, episode: int, out: Path, checkpoint_freq: int) -> subprocess.Popen:
+    """``sb3-sera compare`` of SERASAC on ``task``, started as a terminal starts it (a process group of its own)."""
+    params = [
+        "learning_starts:100",
+        "batch_size:32",
+        "buffer_size:1000",
+        "policy_kwargs:dict(net_arch=[32, 32])",
+        f"env_kwargs:{{'max_episode_steps': {episode}}}",
+    ]
+    command = ["compare", "--algos", "serasac", "--env", task, "--seeds", "0", "-n", str(STEPS), "--eval-freq", "200"]
+    command += ["--eval-episodes", "1", "--n-jobs", "1", "--num-threads", "1", "--out", str(out)]
+    command += ["--checkpoint-freq", str(checkpoint_freq), "-params", *params]
+    return subprocess.Popen(
+        [sys.executable, "-m", "sb3_sera", *command],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+        start_new_session=True,
+    )
+
+
+def finish(process: subprocess.Popen, timeout: float = 300) -> str:
+    """Its standard error, once it has ended well."""
+    _, stderr = process.communicate(timeout=timeout)
+    assert process.returncode == 0, stderr[-3000:]
+    return stderr
+
+
+def interrupt_after_checkpoint(process: subprocess.Popen, out: Path, step: int, timeout: float = 300) -> str:
+    """Ctrl-C to ``process`` once its run has a checkpoint at ``step`` or later; its standard error."""
+    deadline = time.monotonic() + timeout
+    try:
+        while time.monotonic() < deadline:
+            steps = [int(path.read_text() or 0) for path in out.glob("*/*/checkpoint/step")]
+            if steps and max(steps) >= step:
+                break
+            assert process.poll() is None, process.communicate()[1][-3000:]
+            time.sleep(0.05)
+        os.killpg(process.pid, signal.SIGINT)
+        _, stderr = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+    assert process.returncode == 130, stderr[-3000:]
+    return stderr
+
+
+def run_folder(out: Path) -> Path:
+    (folder,) = out.glob("serasac/*_1")
+    return folder
+
+
+@pytest.mark.parametrize("kind", sorted(TASKS))
+def test_a_run_interrupted_by_ctrl_c_resumes_from_the_command_line_to_the_uninterrupted_end(tmp_path, kind):
+    task, episode = TASKS[kind]
+    straight, resumed = tmp_path / "straight", tmp_path / "resumed"
+    finish(compare(task, episode, straight, checkpoint_freq=0))
+    stderr = interrupt_after_checkpoint(compare(task, episode, resumed, EVERY), resumed, 2 * EVERY)
+    assert "Traceback" not in stderr and "the same command resumes serasac seed 0" in stderr
+    assert "resumed there from its last checkpoint" in finish(compare(task, episode, resumed, EVERY))
+    a, b = run_folder(straight), run_folder(resumed)
+    (resume,) = load_result(b).resumes
+    assert resume["from_step"] >= 2 * EVERY
+    name = task.replace("/", "-")
+    first = SERASAC.load(a / f"{name}.zip", device="cpu").policy.state_dict()
+    second = SERASAC.load(b / f"{name}.zip", device="cpu").policy.state_dict()
+    assert first.keys() == second.keys()
+    assert all(th.equal(first[key], second[key]) for key in first), f"parameters differ after a resume at {resume}"
+    monitors = [pd.read_csv(folder / "0.monitor.csv", skiprows=1)[["r", "l"]] for folder in (a, b)]
+    assert len(monitors[0]) >= STEPS // episode - 1 and monitors[0].equals(monitors[1])
+    for name in ("evaluations.npz", "initial_state_bias.npz"):
+        with np.load(a / name) as x, np.load(b / name) as y:
+            assert x.files == y.files and all(np.array_equal(x[key], y[key]) for key in x.files), name
