@@ -122,7 +122,7 @@ def save_checkpoint(
     Write the run's checkpoint (see the module's docstring) into ``folder/checkpoint``, replacing the last one.
 
     :param env_states: the states of the training and evaluation environments, when already captured
-        (:func:`env_states`); by default captured here
+        (:func:`~.env_state.capture`); by default captured here
     :raises StateNotCapturable: where an environment's state cannot be written as data (nothing is written)
     """
     assert model.env is not None

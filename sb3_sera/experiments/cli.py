@@ -17,11 +17,15 @@ from sb3_sera.experiments.checkpoint import CHECKPOINT_FREQ
 from sb3_sera.experiments.records import RunResult, env_name
 
 
-def _print_report(results: list[RunResult], out: str, name: str, reps: int) -> None:
-    """Report the runs just made in a new ``<out>/reports/<name>_<n>/`` and print its tables."""
+def _print_report(results: list[RunResult], out: str, name: str, reps: int, summary: str = "") -> None:
+    """
+    Report the runs just made in a new ``<out>/reports/<name>_<n>/`` and print its tables, then ``summary`` (the
+    comparison in short), then where the report, its figures and the runs are.
+    """
     folder = report.next_report_folder(Path(out) / "reports", name)
     path = report.write_report(results, folder, reps=reps, sources=[out], log=lambda line: print(line, file=sys.stderr))
-    print(f"\n{path.read_text()}\nReport: {path}{_figures(path)}\nRun folders: {out}/<variant>/<env_name>_<id>/")
+    short = f"\n{summary}\n" if summary else ""
+    print(f"\n{path.read_text()}{short}\nReport: {path}{_figures(path)}\nRun folders: {out}/<variant>/<env_name>_<id>/")
 
 
 def _figures(report_path: Path) -> str:
@@ -48,7 +52,7 @@ def _compare(args: argparse.Namespace) -> None:
         checkpoint_freq=args.checkpoint_freq,
         keep_checkpoints=args.keep_checkpoints,
     )
-    _print_report(results, out=args.out, name=env_name(args.env), reps=args.reps)
+    _print_report(results, out=args.out, name=env_name(args.env), reps=args.reps, summary=compare.summary(results, args.algos))
 
 
 def _bench(args: argparse.Namespace) -> None:

@@ -9,11 +9,12 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from sb3_sera.experiments import stats
 from sb3_sera.experiments.backends import default_threads, execute
 from sb3_sera.experiments.checkpoint import CHECKPOINT_FREQ
 from sb3_sera.experiments.engine import check_specs
 from sb3_sera.experiments.policy_kwargs import parse_value
-from sb3_sera.experiments.records import RunResult
+from sb3_sera.experiments.records import FINAL_EVALUATIONS, RunResult
 from sb3_sera.experiments.registry import algorithm_classes, check_task
 from sb3_sera.experiments.specs import check_matched, make_spec
 
@@ -22,6 +23,8 @@ DEFAULT_ENV = "Pendulum-v1"
 DEFAULT_ALGOS = ("serasac", "sac")
 DEFAULT_SEEDS = (0, 1)
 DEFAULT_TIMESTEPS = 6_000
+#: The level :func:`summary` decides at
+ALPHA = 0.05
 
 
 def parse_params(items: Sequence[str], algos: Sequence[str]) -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
@@ -113,3 +116,38 @@ def run_comparison(
     check_specs(specs)
     check_matched(specs)
     return execute(specs, out_dir, n_jobs=n_jobs, progress_bar=progress_bar)
+
+
+def summary(results: Sequence[RunResult], algos: Sequence[str]) -> str:
+    """
+    The one comparison a user came for, in a few lines: each algorithm's final return (mean and standard deviation
+    over its runs), then the first algorithm against each other one: the difference of means with its 95% Welch
+    interval and the decision at alpha 0.05 (:func:`.stats.decision_p_value`), or why there is none (too few runs).
+    """
+    returns = {algo: [r.final_return for r in results if r.variant == algo] for algo in algos}
+    budget = max((r.n_timesteps for r in results), default=0)
+    env_id = results[0].env_id if results else "?"
+    width = max(len(algo) for algo in algos)
+    lines = [f"In short: final return (mean of the last {FINAL_EVALUATIONS} evaluations) on {env_id} at {budget:,} steps"]
+    for algo, values in returns.items():
+        spread = f" ± {stats.sample_std(values):.1f}" if len(values) > 1 else ""
+        lines.append(f"  {algo:<{width}}  {sum(values) / len(values):.1f}{spread} ({len(values)} run(s))")
+    first, *others = algos
+    for other in others:
+        x, y = returns[first], returns[other]
+        head = f"  {first} - {other}:"
+        if min(len(x), len(y)) < 2:
+            lines.append(f"{head} no interval from one run a side: more seeds (--seeds) to compare")
+            continue
+        difference, low, high = stats.welch_interval(x, y)
+        interval = f"{difference:+.1f}, 95% Welch interval [{low:.1f}, {high:.1f}]"
+        smallest = stats.smallest_p_value(len(x), len(y))
+        if smallest >= ALPHA:
+            verdict = f"too few runs to decide (smallest possible p {smallest:.3g} at {len(x)} against {len(y)})"
+        else:
+            p = stats.decision_p_value(x, y)[0]
+            verdict = f"p {p:.3g}: " + (
+                f"{first} {'ahead' if difference > 0 else 'behind'}" if p < ALPHA else "no difference shown"
+            )
+        lines.append(f"{head} {interval}; {verdict}")
+    return "\n".join(lines)

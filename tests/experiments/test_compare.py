@@ -11,6 +11,7 @@ import yaml
 
 from sb3_sera.experiments import backends, compare, engine, registry, specs
 from sb3_sera.experiments.cli import main
+from sb3_sera.experiments.records import RunResult
 
 TINY = ["--seeds", "0", "-n", "240", "--eval-freq", "120", "--eval-episodes", "1", "--reps", "200"]
 
@@ -22,6 +23,9 @@ def test_compare_cli_end_to_end(tmp_path, capsys):
     main(argv)
     printed = capsys.readouterr().out
     assert "| serasac | 1 |" in printed and "| sac | 1 |" in printed
+    # The comparison in short comes last, before where the report and runs are
+    short = printed[printed.index("In short: final return (mean of the last 3 evaluations) on Pendulum-v1 at 240 steps") :]
+    assert short.index("serasac - sac: no interval from one run a side") < short.index("Report: ")
     # A run folder of compare is a zoo run folder: rl-zoo3's enjoy opens it
     main(["enjoy", "--algo", "serasac", "--env", "Pendulum-v1", "-f", str(out), "--exp-id", "1", "-n", "10", "--no-render"])
     # The report's figures are named after its path
@@ -195,3 +199,25 @@ def test_schedules_read_as_rl_zoo3_reads_them():
     assert converted["learning_rate"](1.0) == pytest.approx(1e-3) and converted["learning_rate"](0.5) == pytest.approx(5e-4)
     with pytest.raises(ValueError, match=r"learning_rate='exp_3' is not a schedule: write a number, or lin_<initial"):
         engine.schedules({"learning_rate": "exp_3"})
+
+
+def _results(finals: dict[str, list[float]]) -> list:
+    return [
+        RunResult(
+            variant=algo, algo=algo, env_id="Pendulum-v1", seed=seed, n_timesteps=6000, wall_time_s=1.0, final_return=value
+        )
+        for algo, values in finals.items()
+        for seed, value in enumerate(values)
+    ]
+
+
+def test_the_summary_gives_the_difference_its_interval_and_a_decision_only_where_one_is_possible():
+    # Two runs a side: 2 of the 6 splits are as extreme as any, so no p below 1/3 exists
+    short = compare.summary(_results({"serasac": [-200.0, -180.0], "sac": [-300.0, -250.0]}), ["serasac", "sac"])
+    assert "  serasac  -190.0 ± 14.1 (2 run(s))\n  sac      -275.0 ± 35.4 (2 run(s))" in short
+    assert "serasac - sac: +85.0, 95% Welch interval [" in short
+    assert short.endswith("; too few runs to decide (smallest possible p 0.333 at 2 against 2)")
+    # Six a side, fully apart: the two extreme splits of 924, 2/924
+    finals = {"serasac": [-200.0 + i for i in range(6)], "sac": [-260.0 + 3 * i for i in range(6)]}
+    assert compare.summary(_results(finals), ["serasac", "sac"]).endswith("; p 0.00216: serasac ahead")
+    assert compare.summary(_results(finals), ["sac", "serasac"]).endswith("; p 0.00216: sac behind")
