@@ -1,6 +1,6 @@
 """
 What every algorithm of the package shares with SB3's own: its TensorBoard runs are named after it; and what it adds:
-a warning when ``learn`` would end before the first gradient step.
+a warning when ``learn`` would end before the first gradient step, and an error for a negative budget.
 """
 
 import warnings
@@ -29,7 +29,16 @@ class NamedRuns(BaseAlgorithm):
         reset_num_timesteps: bool = True,
         progress_bar: bool = False,
     ) -> SelfNamedRuns:
-        """SB3's ``learn``; ``tb_log_name`` defaults to the algorithm's class name."""
+        """
+        SB3's ``learn``; ``tb_log_name`` defaults to the algorithm's class name.
+
+        :raises ValueError: for a negative ``total_timesteps`` (SB3 would return without a word)
+        """
+        if total_timesteps < 0:
+            raise ValueError(
+                f"{type(self).__name__}.learn: total_timesteps={total_timesteps} is negative: it is the number of "
+                "environment steps to take, an integer >= 0"
+            )
         learning_starts = getattr(self, "learning_starts", None)
         end = total_timesteps + (0 if reset_num_timesteps else self.num_timesteps)
         if learning_starts is not None and learning_starts >= end:

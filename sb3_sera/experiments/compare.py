@@ -90,6 +90,8 @@ def run_comparison(
     if stray:
         raise ValueError(f"-params name algorithm(s) {stray} that are not compared; compared: {list(algos)}")
     check_task(env_id)
+    if n_timesteps < 1:
+        raise ValueError(f"n_timesteps={n_timesteps} is out of range: the budget of a run must be an integer >= 1")
     if eval_freq > n_timesteps:
         raise ValueError(f"eval_freq={eval_freq} exceeds n_timesteps={n_timesteps}: no evaluation would run")
     n_jobs = min(n_jobs or os.cpu_count() or 1, len(algos) * len(seeds))

@@ -4,6 +4,7 @@ hyperparameters as ``sb3-sera train`` takes them: the task's entry in ``hyperpar
 file, else rl-zoo3's own), with the keys each algorithm accepts.
 """
 
+import difflib
 import inspect
 from collections.abc import Sequence
 from pathlib import Path
@@ -181,7 +182,6 @@ def check_hyperparams(algo: str, hyperparams: dict[str, Any], where: str) -> Non
 
 def check_known(algo: str, hyperparams: dict[str, Any], allowed: set[str], where: str) -> None:
     """Raise ``ValueError`` naming the keys of ``hyperparams`` not in ``allowed``, with the nearest allowed names."""
-    import difflib
 
     unknown = sorted(set(hyperparams) - allowed)
     if unknown:
@@ -196,5 +196,7 @@ def check_known(algo: str, hyperparams: dict[str, Any], allowed: set[str], where
 def check_task(env_id: str) -> None:
     """Raise ``ValueError`` for an env id Gymnasium does not know, listing this package's ids."""
     if env_id not in gym.registry:
+        close = difflib.get_close_matches(env_id, list(gym.registry), n=3)
+        hint = f"did you mean {' or '.join(repr(name) for name in close)}? " if close else ""
         registered = sorted(name for name in gym.registry if name.startswith("sb3_sera/"))
-        raise ValueError(f"unknown task {env_id!r}; registered ids include {registered} and Gymnasium's")
+        raise ValueError(f"unknown task {env_id!r}; {hint}registered ids include {registered} and Gymnasium's")

@@ -188,3 +188,6 @@ def test_learn_warns_when_it_would_train_nothing(algo):
     with warnings.catch_warnings():
         warnings.simplefilter("error", UserWarning)
         model.learn(60, reset_num_timesteps=False)
+    # A negative budget is an error, not a warning about learning_starts
+    with pytest.raises(ValueError, match=rf"{algo.__name__}.learn: total_timesteps=-100 is negative"):
+        model.learn(-100)

@@ -32,7 +32,10 @@ def write(tmp_path, text: str):
     ("replace", "message"),
     [
         (("serasac: {}", "sera: {}"), r"variant 'sera' names unknown algorithm 'sera'; known: .*'serasac'"),
-        (("Pendulum-v1", "Pendulum-v9"), r"unknown task 'Pendulum-v9'; registered ids include .*sb3_sera/"),
+        (
+            ("Pendulum-v1", "Pendulum-v9"),
+            r"unknown task 'Pendulum-v9'; did you mean 'Pendulum-v1'.*registered ids include .*sb3_sera/",
+        ),
         (
             ("batch_size: 32", "batch_sise: 32"),
             r"unknown hyperparameter\(s\) \['batch_sise'\] for serasac; did you mean 'batch_size' for 'batch_sise'\?; allowed",

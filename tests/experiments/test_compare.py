@@ -106,6 +106,19 @@ def test_unknown_algorithm_is_refused_before_any_run(tmp_path):
     assert not any(tmp_path.iterdir())
 
 
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["-n", "-100"], "n_timesteps=-100 is out of range: the budget of a run must be an integer >= 1"),
+        (["--env", "Pendulm-v1"], "unknown task 'Pendulm-v1'; did you mean 'Pendulum-v1'"),
+    ],
+)
+def test_a_wrong_budget_or_task_is_named_as_such(tmp_path, capsys, argv, message):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["compare", "--out", str(tmp_path / "runs"), *argv])
+    assert exit_info.value.code == 2 and message in capsys.readouterr().err
+
+
 def test_a_failed_run_leaves_no_folder_and_is_named(tmp_path, capsys):
     bad = specs.make_spec(
         variant="serasac",
