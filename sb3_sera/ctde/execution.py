@@ -12,6 +12,7 @@ controllers from someone else runs none of their code.
 
 import copy
 import json
+import math
 import pickle
 from collections.abc import Mapping
 from pathlib import Path
@@ -67,13 +68,27 @@ FORMAT_VERSION = 2
 _BOX_DTYPES = ("float32", "float64")
 
 
+def _bounds(values: np.ndarray) -> Any:
+    """
+    A Box's bounds as strict JSON, nested as the array: each a number, or ``"inf"``, ``"-inf"`` or ``"nan"`` where it
+    is not finite (JSON has no infinity; ``np.array(..., dtype=float)`` reads the strings back).
+    """
+
+    def encode(value: Any) -> Any:
+        if isinstance(value, list):
+            return [encode(item) for item in value]
+        return value if math.isfinite(value) else str(value)
+
+    return encode(values.astype(float).tolist())
+
+
 def _encode_argument(name: str, value: Any) -> Any:
     """
     An actor's constructor argument as JSON: a Box by its bounds and dtype, an activation by its name in
     ``torch.nn``, the flattening features extractor by name; plain numbers, strings and lists as they are.
     """
     if isinstance(value, spaces.Box):
-        return {"box": {"low": value.low.tolist(), "high": value.high.tolist(), "dtype": str(value.dtype)}}
+        return {"box": {"low": _bounds(value.low), "high": _bounds(value.high), "dtype": str(value.dtype)}}
     if isinstance(value, type) and value.__name__ in activation.__all__ and getattr(nn, value.__name__) is value:
         return {"module": value.__name__}
     if isinstance(value, FlattenExtractor):
@@ -246,10 +261,11 @@ class DecentralizedActors:
                 "arguments": {
                     name: _encode_argument(name, value) for name, value in actor._get_constructor_parameters().items()
                 },
-                "low": space.low.tolist(),
-                "high": space.high.tolist(),
+                "low": _bounds(space.low),
+                "high": _bounds(space.high),
             }
-        (folder / "agents.json").write_text(json.dumps({"format": FORMAT_VERSION, "agents": layout}, indent=1))
+        agents = json.dumps({"format": FORMAT_VERSION, "agents": layout}, indent=1, allow_nan=False)
+        (folder / "agents.json").write_text(agents)
 
     @classmethod
     def load(cls, path: str | Path) -> "DecentralizedActors":

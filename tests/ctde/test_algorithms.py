@@ -58,6 +58,11 @@ def test_decentralized_controllers(algo, tmp_path):
     reloaded = DecentralizedActors.load(tmp_path / "controllers")
     for agent, action in reloaded(local).items():
         np.testing.assert_array_equal(action, actions[agent])
+    # agents.json is strict JSON (no Infinity): the unbounded observation spaces' bounds are strings that read back
+    text = (tmp_path / "controllers" / "agents.json").read_text()
+    layout = json.loads(text, parse_constant=lambda name: pytest.fail(f"agents.json holds {name}"))["agents"]
+    assert '"-inf"' in text and all(np.isinf(actor.observation_space.low).all() for actor in reloaded.actors.values())
+    assert layout["agent_0"]["arguments"]["observation_space"]["box"]["low"][0] == "-inf"
 
 
 class _WritesMarker:
