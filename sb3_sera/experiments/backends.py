@@ -73,6 +73,7 @@ def execute(
     n_jobs: int | None = None,
     ray_address: str | None = None,
     progress_bar: bool = True,
+    accept_older: str | None = None,
 ) -> list[RunResult]:
     """
     Run every spec in its folder (:func:`.assign_folders`): on a local process pool of ``n_jobs`` workers (default:
@@ -84,10 +85,12 @@ def execute(
     ``out_dir`` is locked while the runs are made (:func:`.output_lock`). One Ctrl-C (or SIGTERM) stops every
     worker and raises :class:`Interrupted` naming the unfinished runs, which the same command resumes.
 
+    :param accept_older: why a finished run made by other code is read back rather than trained again (recorded in
+        its folder; None: never, see :func:`.assign_folders`)
     :return: the results, in the order of ``specs``
     """
     with output_lock(out_dir):
-        folders = assign_folders(specs, out_dir)
+        folders = assign_folders(specs, out_dir, accept_older=accept_older)
         if ray_address is not None:
             outcomes = _execute_on_ray(specs, folders=folders, address=ray_address, progress_bar=progress_bar)
         else:

@@ -168,6 +168,7 @@ def run_grid(
     device: str = "auto",
     checkpoint_freq: int = CHECKPOINT_FREQ,
     keep_checkpoints: bool = False,
+    accept_older: str | None = None,
 ) -> list[RunResult]:
     """
     Run a grid file's runs (see :func:`load_grid`).
@@ -175,9 +176,10 @@ def run_grid(
     :param checkpoint_freq: steps between a run's checkpoints (0: none): an interrupted grid resumes each unfinished
         run from its last one (:mod:`~sb3_sera.experiments.checkpoint`)
     :param keep_checkpoints: keep a finished run's last checkpoint (removed by default)
+    :param accept_older: why finished runs made by other code are read back (see :func:`.execute`)
     :return: the results, in the grid's order
     """
     specs = load_grid(path, num_threads, device)
     for spec in specs:
         spec.checkpoint_freq, spec.keep_checkpoints = checkpoint_freq, keep_checkpoints
-    return execute(specs, out_dir, n_jobs=n_jobs, ray_address=ray_address)
+    return execute(specs, out_dir, n_jobs=n_jobs, ray_address=ray_address, accept_older=accept_older)

@@ -51,6 +51,7 @@ def _compare(args: argparse.Namespace) -> None:
         studies=args.studies,
         checkpoint_freq=args.checkpoint_freq,
         keep_checkpoints=args.keep_checkpoints,
+        accept_older=args.accept_older,
     )
     _print_report(results, out=args.out, name=env_name(args.env), reps=args.reps, summary=compare.summary(results, args.algos))
 
@@ -67,6 +68,7 @@ def _bench(args: argparse.Namespace) -> None:
         device=args.device,
         checkpoint_freq=args.checkpoint_freq,
         keep_checkpoints=args.keep_checkpoints,
+        accept_older=args.accept_older,
     )
     _print_report(results, out=args.out, name=Path(args.grid).stem, reps=args.reps)
 
@@ -114,6 +116,13 @@ def _add_run_flags(parser: argparse.ArgumentParser) -> None:
         help="steps between a run's checkpoints, from which the same command resumes an interrupted run (0: none)",
     )
     parser.add_argument("--keep-checkpoints", action="store_true", help="keep a finished run's last checkpoint")
+    parser.add_argument(
+        "--accept-older",
+        metavar="REASON",
+        default=None,
+        help="read back finished runs made by other code than now's (whose numbers it may change) instead of training "
+        "them again, recording REASON, the difference and both codes in each run's accepted.json (default: never)",
+    )
 
 
 class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):

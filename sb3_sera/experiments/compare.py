@@ -67,6 +67,7 @@ def run_comparison(
     studies: Sequence[str] = (),
     checkpoint_freq: int = CHECKPOINT_FREQ,
     keep_checkpoints: bool = False,
+    accept_older: str | None = None,
 ) -> list[RunResult]:
     """
     Train every algorithm on every seed, ``n_jobs`` runs at a time (default: one per core). Every setting is checked
@@ -80,6 +81,7 @@ def run_comparison(
     :param checkpoint_freq: steps between a run's checkpoints (0: none): the same command resumes an interrupted
         run from its last one
     :param keep_checkpoints: keep a finished run's last checkpoint (removed by default)
+    :param accept_older: why finished runs made by other code are read back (see :func:`.execute`)
     :return: the results, ordered as ``algos`` x ``seeds``
     """
     known = algorithm_classes()
@@ -117,7 +119,7 @@ def run_comparison(
         spec.checkpoint_freq, spec.keep_checkpoints = checkpoint_freq, keep_checkpoints
     check_specs(specs)
     check_matched(specs)
-    return execute(specs, out_dir, n_jobs=n_jobs, progress_bar=progress_bar)
+    return execute(specs, out_dir, n_jobs=n_jobs, progress_bar=progress_bar, accept_older=accept_older)
 
 
 def summary(results: Sequence[RunResult], algos: Sequence[str]) -> str:

@@ -1,13 +1,16 @@
 """
 The output folder of ``compare`` and ``bench``: a run folder for each spec, and the lock that keeps a second command
 out of it. A run whose records match an earlier run's gets that run's folder: a finished one is read back, not run
-again, only where the same code made it (the same digest of the package's source and the same package versions:
-``provenance.code_difference``; otherwise it is kept and the run trained again in a new folder); an interrupted one goes
+again, only where the same code made it (the same digest of the code that can change its numbers and the same
+package versions: ``provenance.code_difference``; otherwise it is kept and the run trained again in a new folder, or,
+where the caller gives a reason to accept older runs and no run of the code now is there, read back with the reason
+recorded in its ``accepted.json``); an interrupted one goes
 on there from its last checkpoint (made by the same code) or, without one, from step 0. A folder whose records are
 damaged is named with the file and the reason and left as it is. Any other run gets a new ``<env_name>_<id>`` with
 the next free id, its records written at once (atomically). Every decision is announced per run.
 """
 
+import json
 import os
 import shutil
 import sys
@@ -15,6 +18,7 @@ import time
 import traceback
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
@@ -40,12 +44,19 @@ def notice(message: str) -> None:
     print(message, file=sys.stderr)
 
 
-def assign_folders(specs: Sequence[RunSpec], out_dir: str | Path, notice: Callable[[str], None] = notice) -> list[Path]:
+def assign_folders(
+    specs: Sequence[RunSpec],
+    out_dir: str | Path,
+    notice: Callable[[str], None] = notice,
+    accept_older: str | None = None,
+) -> list[Path]:
     """
     A folder per spec (see the module's docstring): an earlier run's with the same records where its code is the
     code that runs now (finished: read back) or it is unfinished (run again there), else a new ``<env_name>_<id>``.
 
     :param notice: called with a line per reused, stale or damaged folder
+    :param accept_older: the reason to read back a finished run made by other code than now's instead of training
+        it again: recorded in the run's :data:`ACCEPTED_FILE` with the code then and now (None: never)
     """
     folders: list[Path] = []
     taken: set[Path] = set()
@@ -56,6 +67,7 @@ def assign_folders(specs: Sequence[RunSpec], out_dir: str | Path, notice: Callab
         variant_dir = Path(out_dir) / spec.variant
         existing = run_ids(variant_dir, spec.env_id)
         match = None
+        older: tuple[Path, str, dict[str, Any]] | None = None
         for _, folder in sorted(existing.items()):
             if folder in taken or folder in damaged or not (records_dir(folder, spec.env_id) / "args.yml").exists():
                 continue
@@ -70,8 +82,13 @@ def assign_folders(specs: Sequence[RunSpec], out_dir: str | Path, notice: Callab
                 continue
             if not same:
                 continue
-            stale = code_difference(read_record(records_dir(folder, spec.env_id) / "args.yml"), current)
+            recorded = read_record(records_dir(folder, spec.env_id) / "args.yml")
+            stale = code_difference(recorded, {**current, "run_code_digest": spec.run_code_digest()})
             resumable = has_checkpoint(folder)
+            if finished and stale is not None and accept_older is not None:
+                # Read back only where no run of the code now is found
+                older = older or (folder, stale, recorded)
+                continue
             if (finished or resumable) and stale is not None:
                 taken.add(folder)
                 state = "finished" if finished else "interrupted with a checkpoint"
@@ -85,6 +102,11 @@ def assign_folders(specs: Sequence[RunSpec], out_dir: str | Path, notice: Callab
                 notice(f"{folder}: unfinished, no checkpoint: run again there from step 0")
             match = folder
             break
+        if match is None and older is not None:
+            match, stale, recorded = older
+            assert accept_older is not None
+            _record_acceptance(match, accept_older, stale, recorded, current)
+            notice(f"{match}: finished by other code ({stale}): read back, accepted as asked: {accept_older}")
         if match is None:
             next_id = max([*existing, *(_id_of(f, spec.env_id) for f in taken if f.parent == variant_dir)], default=0) + 1
             match = variant_dir / f"{env_name(spec.env_id)}_{next_id}"
@@ -95,6 +117,23 @@ def assign_folders(specs: Sequence[RunSpec], out_dir: str | Path, notice: Callab
         taken.add(match)
         folders.append(match)
     return folders
+
+
+#: A finished run's record of each time it was read back though made by other code (``--accept-older``)
+ACCEPTED_FILE = "accepted.json"
+
+
+def _record_acceptance(folder: Path, reason: str, stale: str, recorded: dict[str, Any], current: dict[str, Any]) -> None:
+    path = folder / ACCEPTED_FILE
+    earlier = json.loads(path.read_text()) if path.exists() else []
+    entry = {
+        "at": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "reason": reason,
+        "difference": stale,
+        "code_then": {key: recorded.get(key) for key in ("git_commit", "run_code_digest", "code_digest")},
+        "code_now": {key: current.get(key) for key in ("git_commit", "code_digest")},
+    }
+    write_atomic(path, json.dumps([*earlier, entry], indent=1))
 
 
 #: What a run set aside by :func:`set_aside` says of why, in its folder

@@ -1,14 +1,19 @@
 """
-Which code made a run: the package versions, the git commit with whether its tree was clean, and a digest of the
-package's source, as each run's ``args.yml`` records them, and why a recorded run was not made by the code now.
+Which code made a run: the package versions, the git commit with whether its tree was clean, a digest of the
+package's source and a digest of the code that can change the run's numbers (:func:`run_code_digest`), as each run's
+``args.yml`` records them, and why a recorded run was not made by the code now.
 """
 
+import ast
+import functools
 import hashlib
 import platform
 import subprocess
 from importlib import metadata
 from pathlib import Path
 from typing import Any
+
+import gymnasium as gym
 
 #: Packages whose versions each run records
 VERSIONED = ("sb3-sera", "stable-baselines3", "sb3-contrib", "rl-zoo3", "torch", "gymnasium", "gymnasium-robotics")
@@ -66,11 +71,114 @@ def code_digest() -> str:
     return digest.hexdigest()[:16]
 
 
+#: The run engine's modules whose code shapes a run's numbers (the model built and trained, the evaluations and their
+#: diagnostics, the checkpoints a resumed run goes on from), whatever the algorithm
+RUN_MODULES = (
+    "sb3_sera.experiments.engine",
+    "sb3_sera.experiments.evaluation",
+    "sb3_sera.experiments.checkpoint",
+    "sb3_sera.experiments.env_state",
+    "sb3_sera.experiments.policy_kwargs",
+)
+#: Modules whose imports :func:`run_code_digest` does not follow and whose code it leaves out: the package's
+#: re-exports, and the bookkeeping of runs (names, folders, records, provenance), which never changes a number
+BOOKKEEPING = (
+    "sb3_sera",
+    "sb3_sera.experiments.registry",
+    "sb3_sera.experiments.folders",
+    "sb3_sera.experiments.records",
+    "sb3_sera.experiments.specs",
+    "sb3_sera.experiments.provenance",
+)
+_PACKAGE = Path(__file__).resolve().parents[1]
+
+
+def _module_file(name: str) -> Path | None:
+    """The source file of the package's module ``name`` (a package's ``__init__.py``), or None."""
+    path = _PACKAGE.joinpath(*name.split(".")[1:])
+    for candidate in (path.with_suffix(".py"), path / "__init__.py"):
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+def _imported_modules(name: str, tree: ast.Module, is_package: bool) -> set[str]:
+    """The package's modules that the module ``name`` imports anywhere in its code (in its functions too)."""
+    found: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                parts = name.split(".")
+                base = parts[: len(parts) - node.level + (1 if is_package else 0)]
+                module = ".".join([*base, *([node.module] if node.module else [])])
+            else:
+                module = node.module or ""
+            for alias in node.names:
+                # `from package import module` imports the module; `from module import name`, the module
+                found.add(f"{module}.{alias.name}" if _module_file(f"{module}.{alias.name}") else module)
+    return {module for module in found if module.split(".")[0] == "sb3_sera" and _module_file(module)}
+
+
+def _code_text(tree: ast.Module) -> str:
+    """The module's code without its comments, docstrings and layout: what can change what it computes."""
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Module | ast.ClassDef | ast.FunctionDef | ast.AsyncFunctionDef):
+            body = node.body
+            first = body[0].value if body and isinstance(body[0], ast.Expr) else None
+            if isinstance(first, ast.Constant) and isinstance(first.value, str):
+                node.body = body[1:] or [ast.Pass()]
+    return ast.dump(tree)
+
+
+@functools.cache
+def _closure(roots: tuple[str, ...]) -> dict[str, str]:
+    """The code (:func:`_code_text`) of ``roots`` and of every module of the package they import, transitively."""
+    seen: dict[str, str] = {}
+    todo = list(roots)
+    while todo:
+        name = todo.pop()
+        if name in seen or name in BOOKKEEPING:
+            continue
+        path = _module_file(name)
+        if path is None:
+            continue
+        tree = ast.parse(path.read_text(), filename=str(path))
+        todo.extend(_imported_modules(name, tree, path.name == "__init__.py"))
+        seen[name] = _code_text(tree)
+    return dict(sorted(seen.items()))
+
+
+def run_code_modules(algorithm: type, env_id: str) -> dict[str, str]:
+    """The package's modules whose code :func:`run_code_digest` digests for this run, each with its code."""
+    roots = list(RUN_MODULES)
+    entry_point = gym.spec(env_id).entry_point
+    task = entry_point.split(":")[0] if isinstance(entry_point, str) else getattr(entry_point, "__module__", "")
+    roots += [module for module in (algorithm.__module__, task) if module.split(".")[0] == "sb3_sera"]
+    return _closure(tuple(sorted(set(roots))))
+
+
+def run_code_digest(algorithm: type, env_id: str) -> str:
+    """
+    A digest of the code that can change the numbers of a run of ``algorithm`` on ``env_id``: the run engine's
+    modules (:data:`RUN_MODULES`), the algorithm's module and the task's (where they are this package's), and every
+    module of the package they import, transitively (:data:`BOOKKEEPING` left out), each read as its syntax tree, so
+    that comments, docstrings and layout do not count. A stock SB3 algorithm's own code counts through the package
+    versions that each run records.
+    """
+    digest = hashlib.sha256()
+    for name, code in run_code_modules(algorithm, env_id).items():
+        digest.update(name.encode() + b"\0" + code.encode() + b"\0")
+    return digest.hexdigest()[:16]
+
+
 def code_difference(recorded: dict[str, Any], current: dict[str, Any]) -> str | None:
     """
     Why a run recorded in ``recorded`` (an ``args.yml``) was not made by the code ``current`` describes (as
     :meth:`.RunSpec.args` gives it), or None where it was: the same package versions and the same code digest
-    (:func:`code_digest`); for a record without a digest, the same commit from clean trees.
+    (:func:`run_code_digest`, or for a record made before it, :func:`code_digest`); for a record without a digest,
+    the same commit from clean trees.
     """
     versions, now_versions = recorded.get("versions") or {}, current.get("versions") or {}
     changed = sorted(k for k in set(versions) | set(now_versions) if versions.get(k) != now_versions.get(k))
@@ -78,6 +186,13 @@ def code_difference(recorded: dict[str, Any], current: dict[str, Any]) -> str | 
         return "package versions differ: " + ", ".join(
             f"{k} {versions.get(k, 'none')} then, {now_versions.get(k, 'none')} now" for k in changed
         )
+    if recorded.get("run_code_digest") is not None:
+        if recorded["run_code_digest"] != current.get("run_code_digest"):
+            return (
+                f"the code that shapes its numbers had digest {recorded['run_code_digest']}, now "
+                f"{current.get('run_code_digest')}"
+            )
+        return None
     if recorded.get("code_digest") is not None:
         if recorded["code_digest"] != current.get("code_digest"):
             return f"its code digest is {recorded['code_digest']}, the code's now is {current.get('code_digest')}"

@@ -11,10 +11,11 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from sb3_sera.experiments.checkpoint import CHECKPOINT_FREQ
-from sb3_sera.experiments.provenance import code_digest, package_versions, source_revision
+from sb3_sera.experiments.provenance import code_digest, package_versions, run_code_digest, source_revision
 from sb3_sera.experiments.records import plain
 from sb3_sera.experiments.registry import (
     SHARED_SETTINGS,
+    algorithm_classes,
     check_hyperparams,
     default_hyperparams,
     shared_settings,
@@ -73,8 +74,13 @@ class RunSpec:
             "versions": package_versions(),
             **source_revision(),
             "code_digest": code_digest(),
+            "run_code_digest": self.run_code_digest(),
             "machine": platform.machine(),
         }
+
+    def run_code_digest(self) -> str:
+        """The digest of the code that can change this run's numbers (:func:`.provenance.run_code_digest`)."""
+        return run_code_digest(algorithm_classes()[self.algo], self.env_id)
 
     def config(self) -> dict[str, Any]:
         """The run's ``config.yml``: the hyperparameters as a zoo YAML entry, with the budget."""

@@ -1,5 +1,8 @@
 """`sb3-sera bench`: grid checks before any run, local runs that resume, and a local Ray instance."""
 
+import json
+import shutil
+
 import pytest
 
 from sb3_sera.experiments import bench
@@ -119,16 +122,27 @@ def test_grid_runs_and_resumes(tmp_path, capsys):
     # A finished run made by other code is kept and trained again in a new folder; a half-written record is named
     # with its file and left as it is, its run made again in a new folder
     args_file = kept.parent / "Pendulum-v1" / "args.yml"
-    args_file.write_text(args_file.read_text().replace("code_digest: ", "code_digest: 0"))
+    args_file.write_text(args_file.read_text().replace("run_code_digest: ", "run_code_digest: 0"))
     damaged = out / "ensemble_mean" / "Pendulum-v1_1" / "Pendulum-v1" / "config.yml"
     damaged.write_text(damaged.read_text()[:25] + "\n  - [unclosed")
     main(["bench", str(path), "--out", str(out), "--n-jobs", "2", "--reps", "200"])
     notices = capsys.readouterr().err
-    assert f"{kept.parent}: finished, but not by the code that runs now (its code digest is 0" in notices
+    assert (
+        f"{kept.parent}: finished, but not by the code that runs now (the code that shapes its numbers had digest 0" in notices
+    )
     assert f"{redone.parent}: damaged (Pendulum-v1/config.yml is unreadable: " in notices
     assert kept.stat().st_mtime_ns == stamp and damaged.exists()
     assert (out / "serasac" / "Pendulum-v1_2" / "result.json").exists()
     assert (out / "ensemble_mean" / "Pendulum-v1_2" / "result.json").exists()
+    # Accepting older runs, with a reason: read back where no run of the code now is there, and recorded
+    shutil.rmtree(out / "serasac" / "Pendulum-v1_2")
+    main(["bench", str(path), "--out", str(out), "--n-jobs", "2", "--reps", "200", "--accept-older", "a docstring edit"])
+    notices = capsys.readouterr().err
+    assert f"{kept.parent}: finished by other code (the code that shapes its numbers had digest 0" in notices
+    assert "read back, accepted as asked: a docstring edit" in notices and kept.stat().st_mtime_ns == stamp
+    (accepted,) = json.loads((kept.parent / "accepted.json").read_text())
+    assert accepted["reason"] == "a docstring edit" and accepted["code_then"]["run_code_digest"].startswith("0")
+    assert not (out / "serasac" / "Pendulum-v1_2").exists()
 
 
 def test_grid_on_a_local_ray_instance(tmp_path):
