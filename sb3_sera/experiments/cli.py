@@ -87,12 +87,18 @@ def _report(args: argparse.Namespace) -> None:
 
 
 def _ledger_add(args: argparse.Namespace) -> None:
-    outcome = ledger.add_runs(args.sources, args.ledger)
+    outcome = ledger.add_runs(args.sources, args.ledger, unclaimed=args.unclaimed)
     for folder in outcome.added:
-        print(f"added {folder}")
+        enters = outcome.enters.get(folder) or []
+        print(f"added {folder}" + (f": enters {', '.join(enters)}" if enters else ": enters no declared claim"))
     for skipped in outcome.refused:
         print(f"refused {skipped.folder}: {skipped.reason}")
     print(f"{len(outcome.added)} run(s) added to {args.ledger}, {len(outcome.refused)} refused")
+    if outcome.added:
+        print(
+            f"`sb3-sera ledger report` now rewrites {ledger.DOCS_DIR}/ (the report, its figures, the results page) and "
+            "the README's results block from the ledger"
+        )
 
 
 def _ledger_report(args: argparse.Namespace) -> None:
@@ -224,6 +230,11 @@ def build_parser() -> argparse.ArgumentParser:
     led_add = led_commands.add_parser("add", help="copy finished runs' records from bench/compare outputs into the ledger")
     led_add.add_argument("sources", nargs="+", help="folders holding <variant>/<env_name>_<id>/ run folders")
     led_add.add_argument("--ledger", default=ledger.LEDGER_DIR, help="the ledger's folder")
+    led_add.add_argument(
+        "--unclaimed",
+        action="store_true",
+        help="also add runs that enter no claim the ledger declares (by default refused, naming why)",
+    )
     led_add.set_defaults(func=_ledger_add)
     led_report = led_commands.add_parser(
         "report", help="regenerate docs/results/ (report, figures, results page) and the README's headline from the ledger"

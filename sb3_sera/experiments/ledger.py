@@ -64,6 +64,8 @@ class AddOutcome:
 
     added: list[Path] = field(default_factory=list)
     refused: list[Skipped] = field(default_factory=list)
+    #: The declared claims each added run enters, by its ledger folder
+    enters: dict[Path, list[str]] = field(default_factory=dict)
 
 
 def find_ledger(start: str | Path | None = None) -> Path:
@@ -168,13 +170,28 @@ def _read_records(folder: Path) -> tuple[Path, dict[str, Any], dict[str, Any]] |
     return records, read[0], read[1]
 
 
-def add_runs(sources: Sequence[str | Path], ledger: str | Path = LEDGER_DIR) -> AddOutcome:
+def claims_entered(claims: Sequence[Claim], args: dict[str, Any]) -> list[str]:
+    """The ids of the ``claims`` that a run recorded as ``args`` (its ``args.yml``) enters: same task, budget, an arm
+    or the baseline as its variant, and a seed the claim reads."""
+    variant, seed = str(args.get("variant") or args.get("algo")), int(args.get("seed", -1))
+    return [
+        claim.id
+        for claim in claims
+        if (claim.task, claim.n_timesteps) == (args.get("env"), args.get("n_timesteps"))
+        and variant in (claim.arm, claim.baseline)
+        and (claim.seeds is None or claim.seeds[0] <= seed <= claim.seeds[1])
+    ]
+
+
+def add_runs(sources: Sequence[str | Path], ledger: str | Path = LEDGER_DIR, unclaimed: bool = False) -> AddOutcome:
     """
     Copy the finished runs under ``sources`` (``<source>/<variant>/<env_name>_<id>/``) into the ledger, each under the
     next free id of its variant and task. Every file of every run is checked first (records parse, evaluations and
     per-evaluation records load and cover the budget); runs already there, unfinished, damaged or without their
-    commit are refused by name. The accepted runs are copied into a hidden staging folder, then renamed into place;
-    any error on the way removes what was placed and the staging folder, so the ledger gets all of them or none.
+    commit are refused by name, and so, in a ledger that declares claims, is a run that enters none of them (its
+    task, budget, variant or seed in no claim: a toy run, say) unless ``unclaimed``. The accepted runs are copied
+    into a hidden staging folder, then renamed into place; any error on the way removes what was placed and the
+    staging folder, so the ledger gets all of them or none.
     """
     ledger = Path(ledger)
     outcome = AddOutcome()
@@ -182,6 +199,7 @@ def add_runs(sources: Sequence[str | Path], ledger: str | Path = LEDGER_DIR) -> 
     if missing:
         raise FileNotFoundError(f"no such folder: {', '.join(missing)}")
     known = {run_identity(folder) for folder in run_folders(ledger) if any(folder.glob("*/args.yml"))}
+    claims = ledger_claims(ledger)
     accepted: list[tuple[Path, Path, Path]] = []
     next_ids: dict[tuple[Path, str], int] = {}
     for source in sources:
@@ -195,13 +213,22 @@ def add_runs(sources: Sequence[str | Path], ledger: str | Path = LEDGER_DIR) -> 
             identity = run_identity(folder)
             if reason is None and identity in known:
                 reason = "the ledger already has this run (same algorithm, variant, task, budget, settings and seed)"
+            enters = [] if claims is None else claims_entered(claims, args)
+            if reason is None and claims is not None and not enters and not unclaimed:
+                reason = (
+                    f"it enters no claim declared in {ledger / CLAIMS_FILE} ({args.get('variant') or args['algo']} on "
+                    f"{args['env']} at {args['n_timesteps']} steps, seed {args.get('seed')}): add it with --unclaimed "
+                    "if it belongs in the ledger all the same"
+                )
             if reason is not None:
                 outcome.refused.append(Skipped(str(folder), reason))
                 continue
             variant_dir = ledger / str(args.get("variant") or args["algo"])
             key = (variant_dir, str(args["env"]))
             next_ids[key] = next_ids.get(key, max(run_ids(variant_dir, key[1]), default=0)) + 1
-            accepted.append((folder, records, variant_dir / f"{env_name(key[1])}_{next_ids[key]}"))
+            target = variant_dir / f"{env_name(key[1])}_{next_ids[key]}"
+            accepted.append((folder, records, target))
+            outcome.enters[target] = enters
             known.add(identity)
     staging = ledger / f".add-{os.getpid()}.partial"
     placed: list[Path] = []

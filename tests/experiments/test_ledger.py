@@ -187,3 +187,27 @@ def test_add_is_all_or_nothing_and_names_each_refusal(bench_out, tmp_path, monke
     with pytest.raises(OSError, match="No space left"):
         ledger.add_runs([bench_out], fresh)
     assert not list(fresh.rglob("*.npz")) and not list(fresh.glob(".add-*"))
+
+
+def test_a_ledger_with_claims_refuses_runs_that_enter_none_unless_asked(bench_out, tmp_path):
+    results = tmp_path / "results"
+    results.mkdir()
+    shutil.copy(ROOT / "results" / "claims.yml", results / "claims.yml")
+    # 200-step toy runs of Pendulum-v1: no claim of the project's is about them
+    outcome = ledger.add_runs([bench_out], results)
+    assert not outcome.added and len(outcome.refused) == 2
+    assert all(
+        "it enters no claim declared in" in skipped.reason
+        and "at 200 steps, seed 0): add it with --unclaimed" in skipped.reason
+        for skipped in outcome.refused
+    )
+    assert ledger.add_runs([bench_out], results, unclaimed=True).added
+    # A claim about them: each run enters it, by id
+    fresh = tmp_path / "claimed"
+    fresh.mkdir()
+    claim = (
+        "{id: toy, task: Pendulum-v1, n_timesteps: 200, measure: final_return, arm: serasac, baseline: sac, direction: higher}"
+    )
+    (fresh / "claims.yml").write_text(f"alpha: 0.05\nclaims:\n  - {claim}\n")
+    outcome = ledger.add_runs([bench_out], fresh)
+    assert sorted(outcome.enters.values()) == [["toy"], ["toy"]] and len(outcome.added) == 2
