@@ -101,6 +101,26 @@ COMMON_RANGES: dict[str, tuple[float, bool]] = {
 }
 
 
+def _check_device(where: str, device: str) -> None:
+    """``ValueError`` for a device torch does not know, or a CUDA device on a machine without CUDA (SB3 would train
+    on the CPU while the run's records named the GPU)."""
+    import torch as th
+
+    if device == "auto":
+        return
+    try:
+        parsed = th.device(device)
+    except RuntimeError:
+        raise ValueError(f"{where}: device={device!r} is not a torch device: expected auto, cpu, cuda or cuda:N") from None
+    if parsed.type == "cuda" and not th.cuda.is_available():
+        raise ValueError(
+            f"{where}: device={device!r}, but torch finds no CUDA device on this machine ({th.__version__}): use "
+            "--device cpu, or auto (the GPU where there is one)"
+        )
+    if parsed.type == "cuda" and parsed.index is not None and parsed.index >= th.cuda.device_count():
+        raise ValueError(f"{where}: device={device!r}, but this machine has {th.cuda.device_count()} CUDA device(s)")
+
+
 def check_run_settings(spec: "RunSpec") -> None:
     """
     Raise ``ValueError`` naming the run and the key for a budget, evaluation setting or common hyperparameter of the
@@ -111,6 +131,7 @@ def check_run_settings(spec: "RunSpec") -> None:
     for key, value, low in (("n_timesteps", spec.n_timesteps, 1), ("eval_freq", spec.eval_freq, 1)):
         if value < low:
             raise ValueError(f"{where}: {key}={value} is out of range: it must be an integer >= {low}")
+    _check_device(where, spec.device)
     if spec.n_eval_episodes < 1:
         raise ValueError(f"{where}: eval_episodes={spec.n_eval_episodes} is out of range: it must be an integer >= 1")
     if spec.eval_freq > spec.n_timesteps:

@@ -7,6 +7,7 @@ import sys
 
 import numpy as np
 import pytest
+import torch as th
 import yaml
 
 from sb3_sera.experiments import backends, compare, engine, registry, specs
@@ -111,6 +112,7 @@ def test_unknown_algorithm_is_refused_before_any_run(tmp_path):
     [
         (["-n", "-100"], "n_timesteps=-100 is out of range: the budget of a run must be an integer >= 1"),
         (["--env", "Pendulm-v1"], "unknown task 'Pendulm-v1'; did you mean 'Pendulum-v1'"),
+        (["--device", "gpu"], "device='gpu' is not a torch device: expected auto, cpu, cuda or cuda:N"),
     ],
 )
 def test_a_wrong_budget_or_task_is_named_as_such(tmp_path, capsys, argv, message):
@@ -234,3 +236,11 @@ def test_the_summary_gives_the_difference_its_interval_and_a_decision_only_where
     finals = {"serasac": [-200.0 + i for i in range(6)], "sac": [-260.0 + 3 * i for i in range(6)]}
     assert compare.summary(_results(finals), ["serasac", "sac"]).endswith("; p 0.00216: serasac ahead")
     assert compare.summary(_results(finals), ["sac", "serasac"]).endswith("; p 0.00216: sac behind")
+
+
+@pytest.mark.skipif(th.cuda.is_available(), reason="a machine without CUDA")
+def test_a_cuda_device_without_cuda_is_refused_not_run_on_the_cpu(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        main(["compare", "--out", str(tmp_path / "runs"), "--device", "cuda"])
+    assert "device='cuda', but torch finds no CUDA device on this machine" in capsys.readouterr().err
+    assert not (tmp_path / "runs").exists()
