@@ -45,6 +45,35 @@ def test_readme_python_block_runs_as_written(block, tmp_path):
     run_block_as_written(block, tmp_path)
 
 
+#: The README's ``sb3-sera compare`` and ``bench`` command lines, as written (comments left out)
+RUN_COMMANDS = [
+    line.split("#")[0].split()[1:]
+    for block in re.findall(r"^```bash\n(.*?)^```$", README, flags=re.DOTALL | re.MULTILINE)
+    for line in block.splitlines()
+    if line.startswith(("sb3-sera compare", "sb3-sera bench"))
+]
+
+
+class _Checked(Exception):
+    """Raised in place of running the runs: every check before them passed."""
+
+
+@pytest.mark.parametrize("argv", RUN_COMMANDS, ids=[" ".join(argv[:3]) for argv in RUN_COMMANDS])
+def test_the_readme_run_commands_pass_every_check_before_their_runs(argv, monkeypatch, tmp_path):
+    from sb3_sera.experiments import bench, compare
+    from sb3_sera.experiments.cli import main
+
+    def checked(specs, *args, **kwargs):
+        raise _Checked(len(specs))
+
+    monkeypatch.chdir(ROOT)
+    for module in (compare, bench):
+        monkeypatch.setattr(module, "execute", checked)
+    out = ["--out", str(tmp_path / "out")] if "--out" not in argv else []
+    with pytest.raises(_Checked):
+        main([*argv, *out])
+
+
 def test_the_readme_cites_the_paper_and_points_only_inside_the_repository():
     assert PAPER in README and PAPER in (ROOT / "docs" / "SPEC.md").read_text()
     assert "../shared" not in README
