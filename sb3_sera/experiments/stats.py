@@ -20,7 +20,6 @@ from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy import stats
 
 #: Coverage of every confidence interval the report prints
 CONFIDENCE = 0.95
@@ -52,6 +51,8 @@ def welch_p_value(sample: ArrayLike, baseline: ArrayLike) -> float | None:
     sample, baseline = np.asarray(sample, dtype=float), np.asarray(baseline, dtype=float)
     if sample.size < 2 or baseline.size < 2:
         return None
+    from scipy import stats  # where it is used: SciPy's statistics take seconds to import
+
     return float(stats.ttest_ind(sample, baseline, equal_var=False).pvalue)
 
 
@@ -72,6 +73,8 @@ def welch_interval(sample: ArrayLike, baseline: ArrayLike) -> tuple[float, float
     if vx + vy == 0:
         return difference, difference, difference
     dof = (vx + vy) ** 2 / (vx**2 / (x.size - 1) + vy**2 / (y.size - 1))
+    from scipy import stats
+
     half = float(stats.t.ppf(0.5 + CONFIDENCE / 2, dof) * math.sqrt(vx + vy))
     return difference, difference - half, difference + half
 
@@ -228,6 +231,8 @@ def iqm(scores: np.ndarray) -> np.ndarray:
     :return: one value, or one per point
     """
     flat = scores.reshape(scores.shape[0] * scores.shape[1], -1)
+    from scipy import stats
+
     return np.atleast_1d(stats.trim_mean(flat, proportiontocut=0.25, axis=0))
 
 
@@ -242,6 +247,8 @@ def iqm_interval(scores: np.ndarray, reps: int = REPS) -> tuple[np.ndarray, np.n
     scores = np.asarray(scores, dtype=float)
     resampled = stratified_resamples(scores, reps, np.random.default_rng(BOOTSTRAP_SEED))
     flat = resampled.reshape(reps, scores.shape[0] * scores.shape[1], -1)
+    from scipy import stats
+
     low, high = percentile_interval(stats.trim_mean(flat, proportiontocut=0.25, axis=1))
     return iqm(scores), low, high
 

@@ -4,15 +4,12 @@ import pytest
 import torch as th
 from torch.fx.experimental.proxy_tensor import make_fx
 
-from sb3_sera.common import compiled
-from sb3_sera.common.compiled import (
-    AdamPlan,
+from sb3_sera.common import graph_passes
+from sb3_sera.common.compiled import AdamPlan, all_finite, masked_adam, masked_polyak
+from sb3_sera.common.graph_passes import (
     BiasIntoPointwise,
     GraphPasses,
     TransposeNarrowProducts,
-    all_finite,
-    masked_adam,
-    masked_polyak,
     transposed_product_is_faster,
 )
 
@@ -155,9 +152,9 @@ def test_the_timing_takes_the_transposed_order_only_when_the_product_saves_a_fif
         clock[0] += 1.0
         return tensor.permute(1, 0)
 
-    monkeypatch.setattr(compiled, "_transposed_is_faster", {})
+    monkeypatch.setattr(graph_passes, "_transposed_is_faster", {})
     monkeypatch.setattr(th, "mm", product)
     monkeypatch.setattr(th.Tensor, "T", property(view))
     monkeypatch.setattr("time.perf_counter", lambda: clock[0])
-    assert compiled.TRANSPOSE_MIN_SAVING == 0.2
+    assert graph_passes.TRANSPOSE_MIN_SAVING == 0.2
     assert transposed_product_is_faster(left, right) is expected
