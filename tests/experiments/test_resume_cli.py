@@ -104,3 +104,46 @@ def test_a_run_interrupted_by_ctrl_c_resumes_from_the_command_line_to_the_uninte
     for name in ("evaluations.npz", "initial_state_bias.npz"):
         with np.load(a / name) as x, np.load(b / name) as y:
             assert x.files == y.files and all(np.array_equal(x[key], y[key]) for key in x.files), name
+
+
+def zoo_train(log_folder: Path, checkpoint_freq: int) -> subprocess.Popen:
+    """``sb3-sera train`` of SERASAC on Pendulum-v1 (100-step episodes), started as a terminal starts it."""
+    command = ["train", "--algo", "serasac", "--env", "Pendulum-v1", "-n", str(STEPS), "--seed", "0", "-f", str(log_folder)]
+    command += ["--eval-freq", "200", "--eval-episodes", "1", "--env-kwargs", "max_episode_steps:100"]
+    command += ["--checkpoint-freq", str(checkpoint_freq), "-params", "learning_starts:100", "batch_size:32"]
+    command += ["buffer_size:1000", "policy_kwargs:dict(net_arch=[32, 32])"]
+    return subprocess.Popen(
+        [sys.executable, "-m", "sb3_sera", *command],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+        start_new_session=True,
+    )
+
+
+def test_sb3_sera_train_interrupted_by_ctrl_c_resumes_with_the_same_command_to_the_uninterrupted_end(tmp_path):
+    straight, resumed = tmp_path / "straight", tmp_path / "resumed"
+    finish(zoo_train(straight, checkpoint_freq=0))
+    process = zoo_train(resumed, EVERY)
+    # rl-zoo3 ends an interrupted train well (it saves the model): exit code 0
+    deadline = time.monotonic() + 300
+    while not list(resumed.glob("*/*/checkpoint/step")) or int(next(resumed.glob("*/*/checkpoint/step")).read_text()) < 200:
+        assert process.poll() is None and time.monotonic() < deadline, process.communicate()[1][-3000:]
+        time.sleep(0.05)
+    os.killpg(process.pid, signal.SIGINT)
+    stderr = finish(process, timeout=60)
+    (folder,) = resumed.glob("serasac/Pendulum-v1_*")
+    assert "Interrupted: the same command resumes it from step " in stderr and str(folder) in stderr
+    assert f"Resuming {folder} from its checkpoint at step " in finish(zoo_train(resumed, EVERY))
+    # The same folder, gone on to the end: no second run folder, no checkpoint left
+    assert [path.name for path in resumed.glob("serasac/*")] == [folder.name] and not (folder / "checkpoint").exists()
+    a = straight / "serasac" / "Pendulum-v1_1"
+    first = SERASAC.load(a / "Pendulum-v1.zip", device="cpu").policy.state_dict()
+    second = SERASAC.load(folder / "Pendulum-v1.zip", device="cpu").policy.state_dict()
+    assert all(th.equal(first[key], second[key]) for key in first)
+    monitors = [pd.read_csv(run / "0.monitor.csv", skiprows=1)[["r", "l"]] for run in (a, folder)]
+    assert len(monitors[0]) == STEPS // 100 and monitors[0].equals(monitors[1])
+    for name in ("evaluations.npz", "initial_state_bias.npz"):
+        with np.load(a / name) as x, np.load(folder / name) as y:
+            assert x.files == y.files and all(np.array_equal(x[key], y[key]) for key in x.files), name
