@@ -2,13 +2,16 @@
 Code identity: a hash of what each trained configuration's code computes, so that runs made at different commits are
 pooled only where their code trains the same.
 
-For every configuration in the ledger (a variant on a task with its recorded hyperparameters, ``config.yml``), a short
-seeded run at those settings: seed 0, one torch thread, ``learning_starts`` lowered to 256 and the replay buffer to
-10,000 (neither changes the update's arithmetic before the buffer wraps), 400 environment steps, so 144 gradient
-steps through every branch the configuration takes (its aggregation, the adaptive or fixed critic rate, the CTDE
-step, delayed actor updates, action noise). The hash is SHA-256 (16 hex digits) of the policy's parameters and
-buffers and of every optimizer's state after it. Two commits that print the same hash for a configuration train it
-identically on this machine with these package versions.
+For every configuration in the ledger (a variant on a task with its recorded hyperparameters, ``config.yml``), a
+seeded run at those settings, evaluated as the ledger's runs are: seed 0, one torch thread, ``learning_starts``
+lowered to 256 and the replay buffer to 10,000 (neither changes the update's arithmetic before the buffer wraps),
+2,300 environment steps, so over 2,000 gradient steps through every branch the configuration takes (its aggregation,
+the adaptive or fixed critic rate, the CTDE step, delayed actor updates, action noise), with the run engine's
+evaluation callback every 1,150 steps (one episode, and every recorder: the initial-state bias and the critic
+diagnostics, whose replay-buffer draws the training then goes on from). The hash is SHA-256 (16 hex digits) of the
+policy's parameters and buffers, of every optimizer's state, and of every array the evaluations wrote. Two commits that
+print the same hash for a configuration train and evaluate it identically on this machine with these package
+versions.
 
     OMP_NUM_THREADS=1 python benchmarks/param_hashes.py                      # the working tree, every configuration
     OMP_NUM_THREADS=1 python benchmarks/param_hashes.py --ledger-commits     # the ledger's commits as well
@@ -43,7 +46,9 @@ ROOT = Path(__file__).resolve().parents[1]
 #: Keys of a zoo entry that describe the run, not the algorithm's constructor
 RUN_KEYS = ("n_timesteps", "policy", "n_envs", "env_kwargs", "noise_type", "noise_std")
 #: The short run's schedule
-LEARNING_STARTS, BUFFER_SIZE, STEPS = 256, 10_000, 400
+LEARNING_STARTS, BUFFER_SIZE, STEPS, EVAL_FREQ = 256, 10_000, 2_300, 1_150
+#: The recorders' files the hash covers (the run engine's names)
+EVALUATION_FILES = ("evaluations.npz", "initial_state_bias.npz", "critic_diagnostics.npz")
 
 
 def configurations(ledger: Path) -> dict[str, dict[str, Any]]:
@@ -77,8 +82,11 @@ def literal(value: Any) -> Any:
         return value
 
 
-def state_hash(model: Any) -> str:
-    """SHA-256 (16 hex digits) of the policy's parameters and buffers, then of every optimizer's state."""
+def state_hash(model: Any, evaluations: Path | None = None) -> str:
+    """
+    SHA-256 (16 hex digits) of the policy's parameters and buffers, then of every optimizer's state, then of every
+    array of the evaluation files in ``evaluations`` (a file a commit did not write is named as missing).
+    """
     digest = hashlib.sha256()
 
     def update(name: str, value: Any) -> None:
@@ -96,6 +104,13 @@ def state_hash(model: Any) -> str:
             for index, state in optimizer.state_dict()["state"].items():
                 for key, value in state.items():
                     update(f"{module_name}.{index}.{key}", value)
+    for path in [evaluations / name for name in EVALUATION_FILES] if evaluations is not None else []:
+        if not path.exists():
+            update(path.name, "missing")
+            continue
+        with np.load(path) as arrays:
+            for key in sorted(arrays.files):
+                update(f"{path.name}.{key}", th.from_numpy(np.ascontiguousarray(arrays[key])))
     return digest.hexdigest()[:16]
 
 
@@ -121,8 +136,21 @@ def hash_configuration(algo: str, env_id: str, config: dict[str, Any]) -> str:
             np.zeros(n_actions), float(config.get("noise_std", 0.1)) * np.ones(n_actions)
         )
     model = {**ALGOS, **ZOO_ALGOS}[algo](config.get("policy", "MlpPolicy"), env, seed=0, device="cpu", **kwargs)
-    model.learn(STEPS)
-    return state_hash(model)
+    with tempfile.TemporaryDirectory() as folder:
+        model.learn(STEPS, callback=evaluation_callback(env_id, Path(folder)))
+        return state_hash(model, Path(folder))
+
+
+def evaluation_callback(env_id: str, folder: Path) -> Any:
+    """The run engine's evaluation callback with every recorder, from wherever the hashed commit keeps it."""
+    from stable_baselines3.common.env_util import make_vec_env
+
+    try:
+        from sb3_sera.experiments.evaluation import InitialStateBiasCallback
+    except ImportError:  # commits before the module moved
+        from sb3_sera.common.callbacks import InitialStateBiasCallback  # type: ignore[no-redef]
+    eval_env = make_vec_env(env_id, n_envs=1, seed=10_000)
+    return InitialStateBiasCallback(eval_env, eval_freq=EVAL_FREQ, n_eval_episodes=1, log_path=str(folder), verbose=0)
 
 
 def hash_tree(tree: Path, found: dict[str, dict[str, Any]]) -> dict[str, str]:
@@ -159,7 +187,14 @@ def hash_commit(commit: str, found: dict[str, dict[str, Any]]) -> dict[str, str]
 def table_header() -> dict[str, Any]:
     """What a hash depends on besides the code: the short run's settings and the versions that ran it."""
     return {
-        "settings": {"steps": STEPS, "learning_starts": LEARNING_STARTS, "buffer_size": BUFFER_SIZE, "threads": 1},
+        "settings": {
+            "steps": STEPS,
+            "learning_starts": LEARNING_STARTS,
+            "buffer_size": BUFFER_SIZE,
+            "eval_freq": EVAL_FREQ,
+            "eval_episodes": 1,
+            "threads": 1,
+        },
         "versions": {"torch": str(th.__version__), "python": sys.version.split()[0]},
     }
 
@@ -219,7 +254,7 @@ def main() -> None:
         hashed = dict(zip(todo, pool.map(lambda tree: hash_commit(tree, todo[tree]), todo), strict=True))
     columns = {tree: {**kept.get(tree, {}), **hashed.get(tree, {})} for tree in [*trees, *kept]}
     columns = {tree: column for tree, column in columns.items() if column}
-    print(f"working tree: {head[:10]}; {STEPS} steps, learning_starts {LEARNING_STARTS}, one thread")
+    print(f"working tree: {head[:10]}; {STEPS} steps, learning_starts {LEARNING_STARTS}, eval every {EVAL_FREQ}, one thread")
     print("| configuration | " + " | ".join(name[:10] for name in columns) + " |")
     print("|---|" + "---|" * len(columns))
     for key, entry in found.items():
