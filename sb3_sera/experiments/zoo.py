@@ -3,7 +3,7 @@ rl-zoo3 bridge. rl-zoo3 has no plugin mechanism, so this module adds the package
 algorithm table (``rl_zoo3.utils.ALGOS``) and to its hyperparameter sampler and converter tables (for
 ``-optimize``), then runs the zoo's own ``train``, ``enjoy`` and ``record_video`` with the package's
 ``hyperparams/<algo>.yml`` as the default ``--conf-file``; ``train`` with the run engine's checkpoints, from which
-the same command line resumes an interrupted train (:class:`_CheckpointedTrain`).
+the same command line resumes an interrupted train (``_CheckpointedTrain``).
 """
 
 import json
@@ -11,7 +11,7 @@ import runpy
 import shutil
 import sys
 from collections.abc import Callable, Sequence
-from contextlib import nullcontext
+from contextlib import nullcontext, suppress
 from pathlib import Path
 from typing import Any
 
@@ -339,8 +339,10 @@ class _CheckpointedTrain:
                 for name in (CHECKPOINT_DIR, f"{CHECKPOINT_DIR}.old", f"{CHECKPOINT_DIR}.partial"):
                     shutil.rmtree(folder / name, ignore_errors=True)
             finally:
-                manager.callbacks[0].on_training_end()
-                model.env.close()
+                if manager.callbacks:
+                    manager.callbacks[0].on_training_end()
+                with suppress(EOFError):  # as rl-zoo3: a subprocess env may be gone already
+                    model.env.close()
 
         return learn
 
@@ -349,7 +351,7 @@ def run_zoo(command: str, argv: Sequence[str]) -> None:
     """
     Run rl-zoo3's ``command`` (train, enjoy, record-video, optimize) with the package's algorithms. ``train`` also
     takes :data:`CHECKPOINT_FLAG` (default every 10,000 steps, 0: none): checkpoints of the run engine in the run's
-    folder, from which the same command line resumes an interrupted run (:class:`_CheckpointedTrain`).
+    folder, from which the same command line resumes an interrupted run (``_CheckpointedTrain``).
     """
     register_with_zoo(command)
     from rl_zoo3.enjoy import enjoy
