@@ -183,6 +183,12 @@ def checkpoint_dir(folder: Path) -> Path | None:
     return None
 
 
+def remove_checkpoints(folder: Path) -> None:
+    """Remove every checkpoint of ``folder``: the last, the one before it and one half-written (a finished run's)."""
+    for name in (CHECKPOINT_DIR, f"{CHECKPOINT_DIR}.old", f"{CHECKPOINT_DIR}.partial"):
+        shutil.rmtree(folder / name, ignore_errors=True)
+
+
 def has_checkpoint(folder: Path) -> bool:
     """Whether ``folder`` holds a whole checkpoint."""
     return checkpoint_dir(folder) is not None

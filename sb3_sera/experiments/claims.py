@@ -267,7 +267,11 @@ class Claim:
 
     def reads(self, run: RunResult) -> bool:
         """Whether the claim reads ``run`` (its seed within :attr:`seeds`)."""
-        return self.seeds is None or self.seeds[0] <= run.seed <= self.seeds[1]
+        return self.reads_seed(run.seed)
+
+    def reads_seed(self, seed: int) -> bool:
+        """Whether the claim reads runs of ``seed`` (within :attr:`seeds`)."""
+        return self.seeds is None or self.seeds[0] <= seed <= self.seeds[1]
 
 
 def load_claims(path: str | Path) -> list[Claim]:
@@ -464,12 +468,12 @@ def _test(result: ClaimResult, threshold: float) -> None:
         if n_arm and n_baseline:
             result.difference = float(values[0].mean() - values[1].mean())
         return
-    result.difference, result.low, result.high = stats.welch_interval(values[0], values[1])
-    smallest = stats.smallest_p_value(n_arm, n_baseline)
-    if smallest >= threshold:
-        result.verdict = f"too few runs to decide (smallest possible p {smallest:.3g})"
+    decision = stats.decide(values[0], values[1], threshold)
+    result.difference, result.low, result.high = decision.difference, decision.low, decision.high
+    if decision.p is None:
+        result.verdict = f"too few runs to decide (smallest possible p {decision.smallest_p:.3g})"
         return
-    result.p_value, result.permutation_p, result.welch_p = stats.decision_p_value(values[0], values[1])
+    result.p_value, result.permutation_p, result.welch_p = decision.p, decision.permutation_p, decision.welch_p
 
 
 def _adjust(results: Sequence[ClaimResult]) -> None:

@@ -143,15 +143,12 @@ def summary(results: Sequence[RunResult], algos: Sequence[str]) -> str:
         if min(len(x), len(y)) < 2:
             lines.append(f"{head} no interval from one run a side: more seeds (--seeds) to compare")
             continue
-        difference, low, high = stats.welch_interval(x, y)
-        interval = f"{difference:+.1f}, 95% Welch interval [{low:.1f}, {high:.1f}]"
-        smallest = stats.smallest_p_value(len(x), len(y))
-        if smallest >= ALPHA:
-            verdict = f"too few runs to decide (smallest possible p {smallest:.3g} at {len(x)} against {len(y)})"
+        decision = stats.decide(x, y, ALPHA)
+        interval = f"{decision.difference:+.1f}, 95% Welch interval [{decision.low:.1f}, {decision.high:.1f}]"
+        if decision.p is None:
+            verdict = f"too few runs to decide (smallest possible p {decision.smallest_p:.3g} at {len(x)} against {len(y)})"
         else:
-            p = stats.decision_p_value(x, y)[0]
-            verdict = f"p {p:.3g}: " + (
-                f"{first} {'ahead' if difference > 0 else 'behind'}" if p < ALPHA else "no difference shown"
-            )
+            ahead = f"{first} {'ahead' if decision.difference > 0 else 'behind'}"
+            verdict = f"p {decision.p:.3g}: " + (ahead if decision.p < ALPHA else "no difference shown")
         lines.append(f"{head} {interval}; {verdict}")
     return "\n".join(lines)

@@ -6,7 +6,6 @@ progress file, and its records written, ``result.json`` last to mark the run fin
 
 import copy
 import json
-import shutil
 import time
 from collections.abc import Sequence
 from datetime import datetime, timezone
@@ -25,7 +24,7 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_sera.common.mujoco_log import route_mujoco_warnings
 from sb3_sera.ctde.env import STATE_KEY
-from sb3_sera.experiments.checkpoint import CHECKPOINT_DIR, Checkpointer, has_checkpoint, load_checkpoint
+from sb3_sera.experiments.checkpoint import Checkpointer, has_checkpoint, load_checkpoint, remove_checkpoints
 from sb3_sera.experiments.evaluation import InitialStateBiasCallback
 from sb3_sera.experiments.folders import notice, set_aside
 from sb3_sera.experiments.policy_kwargs import parse_policy_kwargs
@@ -244,6 +243,5 @@ def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
     write_atomic(folder / RESULT_FILE, json.dumps(result))
     (folder / RESUMES_FILE).unlink(missing_ok=True)
     if not spec.keep_checkpoints:
-        for name in (CHECKPOINT_DIR, f"{CHECKPOINT_DIR}.old", f"{CHECKPOINT_DIR}.partial"):
-            shutil.rmtree(folder / name, ignore_errors=True)
+        remove_checkpoints(folder)
     return load_result(folder)

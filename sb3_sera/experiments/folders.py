@@ -68,6 +68,7 @@ def assign_folders(
         existing = run_ids(variant_dir, spec.env_id)
         match = None
         older: tuple[Path, str, dict[str, Any]] | None = None
+        now = {**current, "run_code_digest": spec.run_code_digest()}
         for _, folder in sorted(existing.items()):
             if folder in taken or folder in damaged or not (records_dir(folder, spec.env_id) / "args.yml").exists():
                 continue
@@ -83,7 +84,7 @@ def assign_folders(
             if not same:
                 continue
             recorded = read_record(records_dir(folder, spec.env_id) / "args.yml")
-            stale = code_difference(recorded, {**current, "run_code_digest": spec.run_code_digest()})
+            stale = code_difference(recorded, now)
             resumable = has_checkpoint(folder)
             if finished and stale is not None and accept_older is not None:
                 # Read back only where no run of the code now is found

@@ -179,7 +179,7 @@ def claims_entered(claims: Sequence[Claim], args: dict[str, Any]) -> list[str]:
         for claim in claims
         if (claim.task, claim.n_timesteps) == (args.get("env"), args.get("n_timesteps"))
         and variant in (claim.arm, claim.baseline)
-        and (claim.seeds is None or claim.seeds[0] <= seed <= claim.seeds[1])
+        and claim.reads_seed(seed)
     ]
 
 

@@ -17,6 +17,7 @@ claims Holm's step-down adjustment (family-wise error) or Benjamini and Hochberg
 import itertools
 import math
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -152,6 +153,34 @@ def decision_p_value(sample: ArrayLike, baseline: ArrayLike, permutations: int =
         # Two constant sides: a certain difference, or none
         welch = 0.0 if np.asarray(sample, dtype=float).mean() != np.asarray(baseline, dtype=float).mean() else 1.0
     return max(permutation, welch), permutation, welch
+
+
+class Decision(NamedTuple):
+    """What :func:`decide` finds: the difference of means with its Welch interval, and the test where one can run."""
+
+    difference: float
+    low: float
+    high: float
+    #: The smallest p the arms' sizes allow (:func:`smallest_p_value`)
+    smallest_p: float
+    #: :func:`decision_p_value`'s three p-values; None where ``smallest_p`` is not below the threshold
+    p: float | None
+    permutation_p: float | None
+    welch_p: float | None
+
+
+def decide(sample: ArrayLike, baseline: ArrayLike, threshold: float) -> Decision:
+    """
+    ``mean(sample) - mean(baseline)`` with its Welch interval, and the decision p (:func:`decision_p_value`) only
+    where the arms' sizes allow a p below ``threshold``: no test is run where none could reject.
+
+    :raises ValueError: with fewer than two values in a sample (:func:`welch_interval`)
+    """
+    difference, low, high = welch_interval(sample, baseline)
+    smallest = smallest_p_value(np.size(sample), np.size(baseline))
+    if smallest >= threshold:
+        return Decision(difference, low, high, smallest, None, None, None)
+    return Decision(difference, low, high, smallest, *decision_p_value(sample, baseline))
 
 
 def benjamini_hochberg(p_values: Sequence[float]) -> list[float]:

@@ -315,7 +315,7 @@ class _CheckpointedTrain:
         return setup_experiment
 
     def _learn(self) -> Callable[..., None]:
-        from sb3_sera.experiments.checkpoint import CHECKPOINT_DIR, checkpoint_step
+        from sb3_sera.experiments.checkpoint import checkpoint_step, remove_checkpoints
 
         def learn(manager: Any, model: Any) -> None:
             if self.every <= 0 or manager.algo == "ars":
@@ -336,8 +336,7 @@ class _CheckpointedTrain:
                 where = f"resumes it from step {step}" if step is not None else "starts it again (no checkpoint yet)"
                 print(f"Interrupted: the same command {where} in {folder}", file=sys.stderr)
             else:
-                for name in (CHECKPOINT_DIR, f"{CHECKPOINT_DIR}.old", f"{CHECKPOINT_DIR}.partial"):
-                    shutil.rmtree(folder / name, ignore_errors=True)
+                remove_checkpoints(folder)
             finally:
                 if manager.callbacks:
                     manager.callbacks[0].on_training_end()
