@@ -1,6 +1,12 @@
-"""What several test files share: the repository's root, the small tasks and settings models are trained with, and
-comparisons of a model's torch state."""
+"""What several test files share: the repository's root, the small tasks and settings models are trained with,
+comparisons of a model's torch state, and the command line run as a terminal runs it (Ctrl-C included)."""
 
+import os
+import signal
+import subprocess
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -95,3 +101,32 @@ def serasac_as_sac(env: Any, optimizer_kwargs: dict[str, Any] | None = None) -> 
         disagreement_coef=0.0,
         policy_kwargs=policy_kwargs,
     )
+
+
+def start_command(*args: str, stderr: int = subprocess.PIPE) -> subprocess.Popen:
+    """``python -m sb3_sera <args>`` started as a terminal starts it: a process group of its own, one torch thread."""
+    return subprocess.Popen(
+        [sys.executable, "-m", "sb3_sera", *args],
+        stdout=subprocess.PIPE,
+        stderr=stderr,
+        text=True,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+        start_new_session=True,
+    )
+
+
+@contextmanager
+def killed_at_exit(process: subprocess.Popen) -> Iterator[subprocess.Popen]:
+    """``process`` for the block; its process group killed after it, should it still run (a test that failed)."""
+    try:
+        yield process
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+
+
+def ctrl_c(process: subprocess.Popen, timeout: float) -> str:
+    """What a terminal's Ctrl-C sends (SIGINT to the whole process group); ``process``'s standard error once it ends."""
+    os.killpg(process.pid, signal.SIGINT)
+    _, stderr = process.communicate(timeout=timeout)
+    return stderr

@@ -10,6 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.helpers import ctrl_c, killed_at_exit, start_command
+
 GRID = """
 algorithms:
   sac: {}
@@ -26,27 +28,7 @@ hyperparams: {learning_starts: 100, batch_size: 32}
 def start_bench(tmp_path: Path, out: Path, *flags: str, stderr: int = subprocess.PIPE) -> subprocess.Popen:
     grid = tmp_path / "grid.yml"
     grid.write_text(GRID)
-    return subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "sb3_sera",
-            "bench",
-            str(grid),
-            "--out",
-            str(out),
-            "--n-jobs",
-            "1",
-            "--num-threads",
-            "1",
-            *flags,
-        ],
-        stdout=subprocess.PIPE,
-        stderr=stderr,
-        text=True,
-        env={**os.environ, "OMP_NUM_THREADS": "1"},
-        start_new_session=True,  # its own process group, as a terminal's foreground job
-    )
+    return start_command("bench", str(grid), "--out", str(out), "--n-jobs", "1", "--num-threads", "1", *flags, stderr=stderr)
 
 
 def wait_for_training(out: Path, timeout: float = 120.0) -> Path:
@@ -70,14 +52,9 @@ def assert_training_stopped(monitor: Path) -> None:
 
 def test_one_ctrl_c_stops_every_worker(tmp_path):
     out = tmp_path / "out"
-    bench = start_bench(tmp_path, out)
-    try:
+    with killed_at_exit(start_bench(tmp_path, out)) as bench:
         monitor = wait_for_training(out)
-        os.killpg(bench.pid, signal.SIGINT)  # what a terminal's Ctrl-C sends: the whole foreground group
-        _, stderr = bench.communicate(timeout=30)
-    finally:
-        if bench.poll() is None:
-            os.killpg(bench.pid, signal.SIGKILL)
+        stderr = ctrl_c(bench, timeout=30)
     assert bench.returncode == 130
     lines = stderr.strip().splitlines()
     # One worker: the first run started without a checkpoint yet, the second never started and leaves no folder
@@ -95,46 +72,33 @@ def test_one_ctrl_c_stops_every_worker(tmp_path):
 def test_one_ctrl_c_stops_every_worker_with_the_output_piped_and_says_where_each_run_resumes(tmp_path):
     # As `sb3-sera bench ... 2>&1 | tee log` and Ctrl-C: the reader of the pipe ends at once, the command after it
     out = tmp_path / "out"
-    bench = start_bench(tmp_path, out, "--checkpoint-freq", "300", stderr=subprocess.STDOUT)
-    try:
+    with killed_at_exit(start_bench(tmp_path, out, "--checkpoint-freq", "300", stderr=subprocess.STDOUT)) as bench:
         monitor = wait_for_training(out)
         while not list(out.glob("*/*/checkpoint/step")):
             time.sleep(0.5)
         assert bench.stdout is not None
         bench.stdout.close()
-        os.killpg(bench.pid, signal.SIGINT)
+        os.killpg(bench.pid, signal.SIGINT)  # Ctrl-C, its output gone: nothing to read back
         bench.wait(timeout=30)
-    finally:
-        if bench.poll() is None:
-            os.killpg(bench.pid, signal.SIGKILL)
     assert bench.returncode == 130
     assert_training_stopped(monitor)
     # The same command again, told where it resumes
-    again = start_bench(tmp_path, out, "--checkpoint-freq", "300")
-    try:
+    with killed_at_exit(start_bench(tmp_path, out, "--checkpoint-freq", "300")) as again:
         deadline = time.monotonic() + 120
         while not list(out.glob("*/*/.resumes.json")) and time.monotonic() < deadline:
             time.sleep(0.5)
-        os.killpg(again.pid, signal.SIGINT)
-        _, stderr = again.communicate(timeout=30)
-    finally:
-        if again.poll() is None:
-            os.killpg(again.pid, signal.SIGKILL)
+        stderr = ctrl_c(again, timeout=30)
     assert "interrupted: 0 of 2 run(s) finished; the same command resumes sac seed 0" in stderr
     assert " from step " in stderr.strip().splitlines()[-1]
 
 
 def test_a_killed_command_takes_its_workers_with_it(tmp_path):
     out = tmp_path / "out"
-    bench = start_bench(tmp_path, out)
-    try:
+    with killed_at_exit(start_bench(tmp_path, out)) as bench:
         monitor = wait_for_training(out)
         bench.kill()  # SIGKILL to the command alone: no handler runs
         bench.wait(timeout=10)
         assert_training_stopped(monitor)
-    finally:
-        if bench.poll() is None:
-            os.killpg(bench.pid, signal.SIGKILL)
 
 
 @pytest.mark.parametrize("command", ["bench", "compare"])

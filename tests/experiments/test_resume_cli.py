@@ -3,10 +3,7 @@ Resuming as users resume: the command line in a process of its own, Ctrl-C (SIGI
 then the same command again in a new process, on each kind of task; the run ends as an uninterrupted one does.
 """
 
-import os
-import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -17,7 +14,7 @@ import torch as th
 
 from sb3_sera import SERASAC
 from sb3_sera.experiments.records import load_result
-from tests.helpers import CTDE_TASK
+from tests.helpers import CTDE_TASK, ctrl_c, killed_at_exit, start_command
 
 # A classic-control task, a MuJoCo task, a MaMuJoCo task and a PettingZoo MPE task, with episodes short enough for
 # several to end before and after the interruption
@@ -42,14 +39,7 @@ def compare(task: str, episode: int, out: Path, checkpoint_freq: int) -> subproc
     command = ["compare", "--algos", "serasac", "--env", task, "--seeds", "0", "-n", str(STEPS), "--eval-freq", "200"]
     command += ["--eval-episodes", "1", "--n-jobs", "1", "--num-threads", "1", "--out", str(out)]
     command += ["--checkpoint-freq", str(checkpoint_freq), "-params", *params]
-    return subprocess.Popen(
-        [sys.executable, "-m", "sb3_sera", *command],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env={**os.environ, "OMP_NUM_THREADS": "1"},
-        start_new_session=True,
-    )
+    return start_command(*command)
 
 
 def finish(process: subprocess.Popen, timeout: float = 300) -> str:
@@ -59,23 +49,41 @@ def finish(process: subprocess.Popen, timeout: float = 300) -> str:
     return stderr
 
 
-def interrupt_after_checkpoint(process: subprocess.Popen, out: Path, step: int, timeout: float = 300) -> str:
-    """Ctrl-C to ``process`` once its run has a checkpoint at ``step`` or later; its standard error."""
+def interrupt_after_checkpoint(
+    process: subprocess.Popen, out: Path, step: int, returncode: int = 130, timeout: float = 300
+) -> str:
+    """
+    Ctrl-C to ``process`` once a run under ``out`` has a checkpoint at ``step`` or later; its standard error, once it
+    has ended with ``returncode``.
+    """
     deadline = time.monotonic() + timeout
-    try:
+    with killed_at_exit(process):
         while time.monotonic() < deadline:
             steps = [int(path.read_text() or 0) for path in out.glob("*/*/checkpoint/step")]
             if steps and max(steps) >= step:
                 break
             assert process.poll() is None, process.communicate()[1][-3000:]
             time.sleep(0.05)
-        os.killpg(process.pid, signal.SIGINT)
-        _, stderr = process.communicate(timeout=60)
-    finally:
-        if process.poll() is None:
-            os.killpg(process.pid, signal.SIGKILL)
-    assert process.returncode == 130, stderr[-3000:]
+        stderr = ctrl_c(process, timeout=60)
+    assert process.returncode == returncode, stderr[-3000:]
     return stderr
+
+
+def assert_same_end(straight: Path, resumed: Path, model_file: str) -> int:
+    """
+    The resumed run ended as the uninterrupted one: the same final parameters, monitor rows (reward and length) and
+    evaluations; the number of monitor rows.
+    """
+    first = SERASAC.load(straight / model_file, device="cpu").policy.state_dict()
+    second = SERASAC.load(resumed / model_file, device="cpu").policy.state_dict()
+    assert first.keys() == second.keys()
+    assert all(th.equal(first[key], second[key]) for key in first), "the parameters differ"
+    monitors = [pd.read_csv(folder / "0.monitor.csv", skiprows=1)[["r", "l"]] for folder in (straight, resumed)]
+    assert monitors[0].equals(monitors[1])
+    for name in ("evaluations.npz", "initial_state_bias.npz"):
+        with np.load(straight / name) as x, np.load(resumed / name) as y:
+            assert x.files == y.files and all(np.array_equal(x[key], y[key]) for key in x.files), name
+    return len(monitors[0])
 
 
 def run_folder(out: Path) -> Path:
@@ -94,16 +102,7 @@ def test_a_run_interrupted_by_ctrl_c_resumes_from_the_command_line_to_the_uninte
     a, b = run_folder(straight), run_folder(resumed)
     (resume,) = load_result(b).resumes
     assert resume["from_step"] >= 2 * EVERY
-    name = task.replace("/", "-")
-    first = SERASAC.load(a / f"{name}.zip", device="cpu").policy.state_dict()
-    second = SERASAC.load(b / f"{name}.zip", device="cpu").policy.state_dict()
-    assert first.keys() == second.keys()
-    assert all(th.equal(first[key], second[key]) for key in first), f"parameters differ after a resume at {resume}"
-    monitors = [pd.read_csv(folder / "0.monitor.csv", skiprows=1)[["r", "l"]] for folder in (a, b)]
-    assert len(monitors[0]) >= STEPS // episode - 1 and monitors[0].equals(monitors[1])
-    for name in ("evaluations.npz", "initial_state_bias.npz"):
-        with np.load(a / name) as x, np.load(b / name) as y:
-            assert x.files == y.files and all(np.array_equal(x[key], y[key]) for key in x.files), name
+    assert assert_same_end(a, b, f"{task.replace('/', '-')}.zip") >= STEPS // episode - 1
 
 
 def zoo_train(log_folder: Path, checkpoint_freq: int) -> subprocess.Popen:
@@ -112,38 +111,17 @@ def zoo_train(log_folder: Path, checkpoint_freq: int) -> subprocess.Popen:
     command += ["--eval-freq", "200", "--eval-episodes", "1", "--env-kwargs", "max_episode_steps:100"]
     command += ["--checkpoint-freq", str(checkpoint_freq), "-params", "learning_starts:100", "batch_size:32"]
     command += ["buffer_size:1000", "policy_kwargs:dict(net_arch=[32, 32])"]
-    return subprocess.Popen(
-        [sys.executable, "-m", "sb3_sera", *command],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env={**os.environ, "OMP_NUM_THREADS": "1"},
-        start_new_session=True,
-    )
+    return start_command(*command)
 
 
 def test_sb3_sera_train_interrupted_by_ctrl_c_resumes_with_the_same_command_to_the_uninterrupted_end(tmp_path):
     straight, resumed = tmp_path / "straight", tmp_path / "resumed"
     finish(zoo_train(straight, checkpoint_freq=0))
-    process = zoo_train(resumed, EVERY)
     # rl-zoo3 ends an interrupted train well (it saves the model): exit code 0
-    deadline = time.monotonic() + 300
-    while not list(resumed.glob("*/*/checkpoint/step")) or int(next(resumed.glob("*/*/checkpoint/step")).read_text()) < 200:
-        assert process.poll() is None and time.monotonic() < deadline, process.communicate()[1][-3000:]
-        time.sleep(0.05)
-    os.killpg(process.pid, signal.SIGINT)
-    stderr = finish(process, timeout=60)
+    stderr = interrupt_after_checkpoint(zoo_train(resumed, EVERY), resumed, 2 * EVERY, returncode=0)
     (folder,) = resumed.glob("serasac/Pendulum-v1_*")
     assert "Interrupted: the same command resumes it from step " in stderr and str(folder) in stderr
     assert f"Resuming {folder} from its checkpoint at step " in finish(zoo_train(resumed, EVERY))
     # The same folder, gone on to the end: no second run folder, no checkpoint left
     assert [path.name for path in resumed.glob("serasac/*")] == [folder.name] and not (folder / "checkpoint").exists()
-    a = straight / "serasac" / "Pendulum-v1_1"
-    first = SERASAC.load(a / "Pendulum-v1.zip", device="cpu").policy.state_dict()
-    second = SERASAC.load(folder / "Pendulum-v1.zip", device="cpu").policy.state_dict()
-    assert all(th.equal(first[key], second[key]) for key in first)
-    monitors = [pd.read_csv(run / "0.monitor.csv", skiprows=1)[["r", "l"]] for run in (a, folder)]
-    assert len(monitors[0]) == STEPS // 100 and monitors[0].equals(monitors[1])
-    for name in ("evaluations.npz", "initial_state_bias.npz"):
-        with np.load(a / name) as x, np.load(folder / name) as y:
-            assert x.files == y.files and all(np.array_equal(x[key], y[key]) for key in x.files), name
+    assert assert_same_end(straight / "serasac" / "Pendulum-v1_1", folder, "Pendulum-v1.zip") == STEPS // 100
