@@ -23,6 +23,15 @@ def no_mujoco_log_file() -> None:
     route_mujoco_warnings()
 
 
+@pytest.fixture(autouse=True, scope="session")
+def sb3_logdir_in_basetemp(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """
+    SB3 makes a folder in the system's temporary directory for every logger configured without one (each ``learn``
+    of a model with no ``tensorboard_log``): the tests, and the commands they start, make them under pytest's own.
+    """
+    os.environ["SB3_LOGDIR"] = str(tmp_path_factory.mktemp("sb3_logs"))
+
+
 @pytest.fixture
 def sb3_sera() -> Callable[..., subprocess.CompletedProcess]:
     """
