@@ -1,5 +1,6 @@
 """The results ledger: adding finished runs (and refusing the rest), regenerating the docs' results and the README's."""
 
+import re
 import shutil
 from pathlib import Path
 
@@ -8,9 +9,10 @@ import pytest
 import yaml
 
 from sb3_sera.experiments import bench, ledger
+from sb3_sera.experiments.claims import claims_section, evaluate
 from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sb3_sera.experiments.records import read_record
-from sb3_sera.experiments.report import load_runs
+from sb3_sera.experiments.report import group_runs, load_runs
 from tests.helpers import ROOT
 
 GRID = """
@@ -163,6 +165,49 @@ def test_the_results_page_and_the_readme_are_what_the_ledger_gives_today():
     assert ledger.current_block(page) == ledger.results_block(ROOT / "results")
     readme = (ROOT / "README.md").read_text()
     assert ledger.current_block(readme) == ledger.readme_block(ROOT / "results", docs=ledger.DOCS_DIR)
+
+
+NUMBER = r"[+-]?\d[\d,]*(?:\.\d+)?"
+INTERVAL = re.compile(rf"({NUMBER})\s+\[({NUMBER}),\s+({NUMBER})\]")
+
+
+def _unprinted(quoted: str, printed: str) -> list[tuple[str, ...]]:
+    """The intervals ``a [b, c]`` of ``quoted`` that no interval of ``printed`` gives at their precision."""
+
+    def agree(a: str, b: str) -> bool:
+        # Roundings of one number: each within half a unit of its last digit of it, so closer than the two halves
+        half_units = sum(0.5 * 10.0 ** -len(s.partition(".")[2]) for s in (a, b))
+        return abs(float(a.replace(",", "")) - float(b.replace(",", ""))) < half_units - 1e-9
+
+    intervals = INTERVAL.findall(printed)
+    return [q for q in INTERVAL.findall(quoted) if not any(all(map(agree, q, p)) for p in intervals)]
+
+
+def _section(text: str, start: str) -> str:
+    """``text`` from just after ``start`` to its next level-2 heading."""
+    rest = text[text.index(start) + len(start) :]
+    return rest.split("\n## ")[0]
+
+
+def test_unprinted_finds_a_figure_the_ledger_does_not_give():
+    printed = "| 965 [80.9, 1848] | 1,101 [707, 1496] |"
+    assert _unprinted("by +965 [81,\n  1848] and 1101 [707, 1496]", printed) == []
+    assert _unprinted("by 965 [82, 1848], 1101 [707, 1497]", printed) == [("965", "82", "1848"), ("1101", "707", "1497")]
+
+
+def test_the_readings_quote_only_intervals_the_ledger_prints():
+    # The hand-written readings under the README's results block and on the results page ("What the ledger says")
+    # quote differences with their intervals: each must be one the ledger gives today (a claim of any family, or a
+    # claim on the runs added after its declaration), at the precision quoted
+    results = ROOT / "results"
+    runs, _ = load_runs([results])
+    decided = evaluate(ledger.ledger_claims(results) or [], group_runs(runs))
+    printed = "\n".join(claims_section(decided)) + ledger.results_block(results)
+    readme = _section((ROOT / "README.md").read_text(), ledger.END)
+    page = _section((ROOT / ledger.DOCS_DIR / ledger.RESULTS_PAGE).read_text(), "## What the ledger says")
+    assert INTERVAL.search(readme) and INTERVAL.search(page)
+    assert _unprinted(readme, printed) == []
+    assert _unprinted(page, printed) == []
 
 
 def test_add_is_all_or_nothing_and_names_each_refusal(bench_out, tmp_path, monkeypatch):
