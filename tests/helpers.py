@@ -79,6 +79,18 @@ def assert_schedule_does_not_recompile(model: Any, batch_size: int, rate: Any) -
     assert counters["stats"]["unique_graphs"] == graphs
 
 
+def assert_non_finite_stops_the_step(model: Any, batch_size: int) -> None:
+    """
+    With NaN rewards in ``model``'s replay buffer, ``train()`` raises ``FloatingPointError`` naming the TD target and
+    the first step, and no parameter or optimizer state changes (a compiled step's masked updates).
+    """
+    model.replay_buffer.rewards[:] = np.nan
+    before, updates = snapshot(model, optimizers=True), model._n_updates
+    with pytest.raises(FloatingPointError, match=rf"^Non-finite TD target at gradient step {updates + 1} "):
+        model.train(gradient_steps=3, batch_size=batch_size)
+    assert_same_state(before, snapshot(model, optimizers=True))
+
+
 def serasac_as_sac(env: Any, optimizer_kwargs: dict[str, Any] | None = None) -> Any:
     """
     SERASAC configured as SB3's SAC (two ``[256, 256]`` critics, min target and actor, fixed critic rate, beta = 0):

@@ -13,7 +13,7 @@ import logging
 import warnings
 from collections.abc import Callable, Sequence
 from contextlib import AbstractContextManager
-from typing import Any, Literal, Protocol, TypeVar
+from typing import Any, Literal, NamedTuple, Protocol, TypeVar
 
 import torch as th
 from torch.utils import _pytree
@@ -270,6 +270,79 @@ def masked_polyak(targets: Sequence[th.Tensor], sources: Sequence[th.Tensor], ta
     with th.no_grad():
         for target, source in zip(targets, sources, strict=True):
             target.copy_(th.where(apply, target * (1.0 - tau) + tau * source, target))
+
+
+class SACUpdate(NamedTuple):
+    """What :func:`masked_sac_update` gives back (tensors of the graph)."""
+
+    #: Whether this step and every earlier one of the ``train()`` call had only finite values (the actor's included)
+    applied: th.Tensor
+    #: One flag per quantity checked, in the order :func:`masked_sac_update` gives
+    finite: th.Tensor
+    #: The actor's loss against the updated critics
+    actor_loss: th.Tensor
+
+
+def masked_sac_update(
+    model: Any,
+    *,
+    ent_coef: th.Tensor,
+    ent_coef_loss: th.Tensor | None,
+    target_q_values: th.Tensor,
+    critic_loss: th.Tensor,
+    actor_loss: Callable[[], th.Tensor],
+    learning_rates: th.Tensor,
+    target_update: th.Tensor,
+    healthy: th.Tensor,
+    states: Sequence[list[tuple[th.Tensor, th.Tensor, th.Tensor]]],
+) -> SACUpdate:
+    """
+    The updates of a compiled SAC gradient step, from its losses, in SB3's order: the entropy coefficient, the
+    critics, then the actor against the updated critics, and the target critics' Polyak average; each masked by
+    ``healthy`` and by whether the values before it were finite. Inside a compiled graph.
+
+    The finite flags are, in order: the entropy coefficient, the TD targets, the critics' loss, the entropy
+    coefficient's loss, the critics' gradients, its gradients (``healthy`` in place of the two where the coefficient
+    is fixed), the actor's loss and its gradients.
+
+    :param model: a SAC whose ``_adam_plans`` are the actor's, the critics' and, where the coefficient is learned,
+        the entropy coefficient's; its ``critic``, ``critic_target`` and ``tau`` make the target update
+    :param ent_coef_loss: None where the entropy coefficient is fixed
+    :param actor_loss: computes the actor's loss, called after the critics' update
+    :param learning_rates: each plan's rate, in ``_adam_plans`` order
+    :param target_update: whether the target critics are updated after this step, a boolean scalar tensor
+    :param healthy: whether every earlier step of the ``train()`` call had only finite values
+    :param states: each plan's Adam state (:meth:`AdamPlan.state`), in ``_adam_plans`` order
+    """
+    actor_plan, critic_plan = model._adam_plans[:2]
+    critic_grads = th.autograd.grad(critic_loss, critic_plan.parameters())
+    entropy_grads: tuple[th.Tensor, ...] = ()
+    if ent_coef_loss is not None:
+        entropy_grads = th.autograd.grad(ent_coef_loss, model._adam_plans[2].parameters())
+    finite = [
+        th.isfinite(ent_coef).all(),
+        th.isfinite(target_q_values).all(),
+        th.isfinite(critic_loss),
+        th.isfinite(ent_coef_loss) if ent_coef_loss is not None else healthy,
+        all_finite(critic_grads),
+        all_finite(entropy_grads) if entropy_grads else healthy,
+    ]
+    apply = healthy & th.stack(finite).all()
+    if ent_coef_loss is not None:
+        masked_adam(model._adam_plans[2], entropy_grads, states[2], [learning_rates[2]], apply)
+    masked_adam(critic_plan, critic_grads, states[1], [learning_rates[1]] * len(critic_plan.settings), apply)
+    loss = actor_loss()
+    actor_grads = th.autograd.grad(loss, actor_plan.parameters())
+    finite += [th.isfinite(loss), all_finite(actor_grads)]
+    applied = apply & finite[-2] & finite[-1]
+    masked_adam(actor_plan, actor_grads, states[0], [learning_rates[0]] * len(actor_plan.settings), applied)
+    masked_polyak(list(model.critic_target.parameters()), list(model.critic.parameters()), model.tau, applied & target_update)
+    return SACUpdate(applied=applied, finite=th.stack(finite), actor_loss=loss)
+
+
+def plans_learning_rates(plans: Sequence[AdamPlan], device: th.device) -> th.Tensor:
+    """A compiled step's ``learning_rates`` for ``plans``: each one's optimizer's current rate, in their order."""
+    return learning_rates_tensor([plan.optimizer.param_groups[0]["lr"] for plan in plans], device)
 
 
 def all_finite(tensors: Sequence[th.Tensor]) -> th.Tensor:

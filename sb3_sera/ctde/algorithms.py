@@ -26,11 +26,10 @@ from sb3_sera.common.compiled import (
     COMPILE_MODES,
     AdamPlan,
     CompileMode,
-    all_finite,
     compile_model_step,
-    learning_rates_tensor,
-    masked_adam,
     masked_polyak,
+    masked_sac_update,
+    plans_learning_rates,
     read_steps,
     run_steps,
 )
@@ -198,7 +197,7 @@ class MASAC(_CTDEAlgorithm, SAC):
 
     def _step_learning_rates(self) -> th.Tensor:
         """The compiled step's ``learning_rates``: each Adam plan's current rate, in the plans' order."""
-        return learning_rates_tensor([plan.optimizer.param_groups[0]["lr"] for plan in self._adam_plans], self.device)
+        return plans_learning_rates(self._adam_plans, self.device)
 
     def _gradient_step_graph(
         self,
@@ -219,7 +218,6 @@ class MASAC(_CTDEAlgorithm, SAC):
         :param healthy: whether every earlier step of the ``train()`` call had only finite values
         :param states: each optimizer's Adam state (:meth:`AdamPlan.state`), in ``_adam_plans`` order
         """
-        actor_plan, critic_plan = self._adam_plans[:2]
         actions_pi, log_prob = self.actor.action_log_prob(replay_data.observations)
         log_prob = log_prob.reshape(-1, 1)
         ent_coef_loss = None
@@ -238,38 +236,29 @@ class MASAC(_CTDEAlgorithm, SAC):
         current_q_values = self.critic(replay_data.observations, replay_data.actions)
         critic_loss = 0.5 * sum(F.mse_loss(current_q, target_q_values) for current_q in current_q_values)
         assert isinstance(critic_loss, th.Tensor)
-        critic_grads = th.autograd.grad(critic_loss, critic_plan.parameters())
-        entropy_grads: tuple[th.Tensor, ...] = ()
-        if ent_coef_loss is not None:
-            entropy_grads = th.autograd.grad(ent_coef_loss, self._adam_plans[2].parameters())
-        finite = [
-            th.isfinite(ent_coef).all(),
-            th.isfinite(target_q_values).all(),
-            th.isfinite(critic_loss),
-            th.isfinite(ent_coef_loss) if ent_coef_loss is not None else healthy,
-            all_finite(critic_grads),
-            all_finite(entropy_grads) if entropy_grads else healthy,
-        ]
-        apply = healthy & th.stack(finite).all()
-        # In SB3's order: the entropy coefficient, the critics, then the actor against the updated critics
-        if ent_coef_loss is not None:
-            masked_adam(self._adam_plans[2], entropy_grads, states[2], [learning_rates[2]], apply)
-        masked_adam(critic_plan, critic_grads, states[1], [learning_rates[1]] * len(critic_plan.settings), apply)
-        q_values_pi = th.cat(self.critic(replay_data.observations, actions_pi), dim=1)
-        min_qf_pi, _ = th.min(q_values_pi, dim=1, keepdim=True)
-        actor_loss = (ent_coef * log_prob - min_qf_pi).mean()
-        actor_grads = th.autograd.grad(actor_loss, actor_plan.parameters())
-        finite += [th.isfinite(actor_loss), all_finite(actor_grads)]
-        apply_actor = apply & finite[-2] & finite[-1]
-        masked_adam(actor_plan, actor_grads, states[0], [learning_rates[0]] * len(actor_plan.settings), apply_actor)
-        masked_polyak(
-            list(self.critic_target.parameters()), list(self.critic.parameters()), self.tau, apply_actor & target_update
+
+        def actor_loss() -> th.Tensor:
+            q_values_pi = th.cat(self.critic(replay_data.observations, actions_pi), dim=1)
+            min_qf_pi, _ = th.min(q_values_pi, dim=1, keepdim=True)
+            return (ent_coef * log_prob - min_qf_pi).mean()
+
+        update = masked_sac_update(
+            self,
+            ent_coef=ent_coef,
+            ent_coef_loss=ent_coef_loss,
+            target_q_values=target_q_values,
+            critic_loss=critic_loss,
+            actor_loss=actor_loss,
+            learning_rates=learning_rates,
+            target_update=target_update,
+            healthy=healthy,
+            states=states,
         )
-        masked_polyak(self.batch_norm_stats_target, self.batch_norm_stats, 1.0, apply_actor & target_update)
-        logged = [ent_coef.reshape(()), critic_loss.detach(), actor_loss.detach()]
+        masked_polyak(self.batch_norm_stats_target, self.batch_norm_stats, 1.0, update.applied & target_update)
+        logged = [ent_coef.reshape(()), critic_loss.detach(), update.actor_loss.detach()]
         if ent_coef_loss is not None:
             logged.append(ent_coef_loss.detach())
-        return SACStepOutput(healthy=apply_actor, finite=th.stack(finite), logged=th.stack(logged))
+        return SACStepOutput(healthy=update.applied, finite=update.finite, logged=th.stack(logged))
 
     def _excluded_save_params(self) -> list[str]:
         return [*super()._excluded_save_params(), "_compiled_step", "_adam_plans"]

@@ -20,11 +20,9 @@ from sb3_sera.common.capabilities import Capabilities
 from sb3_sera.common.compiled import (
     COMPILE_MODES,
     CompileMode,
-    all_finite,
     compile_model_step,
-    learning_rates_tensor,
-    masked_adam,
-    masked_polyak,
+    masked_sac_update,
+    plans_learning_rates,
     read_steps,
     run_steps,
 )
@@ -429,7 +427,7 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
 
     def _step_learning_rates(self) -> th.Tensor:
         """The compiled step's ``learning_rates``: each Adam plan's current rate, in the plans' order."""
-        return learning_rates_tensor([plan.optimizer.param_groups[0]["lr"] for plan in self._adam_plans], self.device)
+        return plans_learning_rates(self._adam_plans, self.device)
 
     def _train_compiled(self, gradient_steps: int, batch_size: int) -> None:
         """
@@ -463,34 +461,23 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
         :param healthy: whether every earlier step of the ``train()`` call had only finite values
         :param states: each optimizer's Adam state (:meth:`AdamPlan.state`), in ``_adam_plans`` order
         """
-        actor_plan, critic_plan = self._adam_plans[:2]
         losses = self._losses(replay_data)
-        critic_grads = th.autograd.grad(losses.critic_loss, critic_plan.parameters())
-        entropy_grads: tuple[th.Tensor, ...] = ()
-        if losses.ent_coef_loss is not None:
-            entropy_grads = th.autograd.grad(losses.ent_coef_loss, self._adam_plans[2].parameters())
-        finite = [
-            th.isfinite(losses.ent_coef).all(),
-            th.isfinite(losses.target_q_values).all(),
-            th.isfinite(losses.critic_loss),
-            th.isfinite(losses.ent_coef_loss) if losses.ent_coef_loss is not None else healthy,
-            all_finite(critic_grads),
-            all_finite(entropy_grads) if entropy_grads else healthy,
-        ]
-        apply = healthy & th.stack(finite).all()
-        if losses.ent_coef_loss is not None:
-            masked_adam(self._adam_plans[2], entropy_grads, states[2], [learning_rates[2]], apply)
-        masked_adam(critic_plan, critic_grads, states[1], [learning_rates[1]] * len(critic_plan.settings), apply)
-        actor_loss = self._actor_loss(replay_data.observations, losses)
-        actor_grads = th.autograd.grad(actor_loss, actor_plan.parameters())
-        finite += [th.isfinite(actor_loss), all_finite(actor_grads)]
-        apply_actor = apply & finite[-2] & finite[-1]
-        masked_adam(actor_plan, actor_grads, states[0], [learning_rates[0]] * len(actor_plan.settings), apply_actor)
-        masked_polyak(
-            list(self.critic_target.parameters()), list(self.critic.parameters()), self.tau, apply_actor & target_update
+        update = masked_sac_update(
+            self,
+            ent_coef=losses.ent_coef,
+            ent_coef_loss=losses.ent_coef_loss,
+            target_q_values=losses.target_q_values,
+            critic_loss=losses.critic_loss,
+            actor_loss=partial(self._actor_loss, replay_data.observations, losses),
+            learning_rates=learning_rates,
+            target_update=target_update,
+            healthy=healthy,
+            states=states,
         )
         return CompiledStepOutput(
-            healthy=apply_actor, finite=th.stack(finite), logged=th.stack(list(self._logged(losses, actor_loss).values()))
+            healthy=update.applied,
+            finite=update.finite,
+            logged=th.stack(list(self._logged(losses, update.actor_loss).values())),
         )
 
     def _check_finite(self, gradient_step: int, quantities: dict[str, th.Tensor]) -> None:

@@ -3,7 +3,6 @@ MASAC's ``compile_update``: SB3 SAC's gradient step on the CTDE policy (the agen
 equal to SB3's eager step, guarded, saved, and with a fixed address for every tensor it writes (CUDA graphs).
 """
 
-import math
 from typing import Any
 
 import gymnasium as gym
@@ -12,7 +11,13 @@ from stable_baselines3.common.utils import set_random_seed
 
 from sb3_sera import MASAC
 from sb3_sera.common.compiled import count_graph_breaks, cuda_graph_blockers
-from tests.helpers import assert_close_state, assert_same_state, assert_schedule_does_not_recompile, snapshot
+from tests.helpers import (
+    assert_close_state,
+    assert_non_finite_stops_the_step,
+    assert_same_state,
+    assert_schedule_does_not_recompile,
+    snapshot,
+)
 
 ENV = "sb3_sera/Pusher-3p-v0"  # three agents of different observation and action sizes: padded stacked actors
 SETTINGS: dict[str, Any] = dict(learning_starts=64, batch_size=32, buffer_size=1_000, policy_kwargs=dict(net_arch=[16]))
@@ -61,12 +66,7 @@ def test_the_compiled_step_is_one_graph_with_fixed_addresses():
 
 
 def test_a_non_finite_value_stops_the_compiled_step_and_changes_nothing():
-    model = build(True)
-    model.replay_buffer.rewards[:] = math.nan
-    before, updates = snapshot(model, optimizers=True), model._n_updates
-    with pytest.raises(FloatingPointError, match=rf"^Non-finite TD target at gradient step {updates + 1} "):
-        model.train(gradient_steps=3, batch_size=SETTINGS["batch_size"])
-    assert_same_state(before, snapshot(model, optimizers=True))
+    assert_non_finite_stops_the_step(build(True), SETTINGS["batch_size"])
 
 
 def test_bad_modes_are_refused():
