@@ -115,8 +115,17 @@ def serasac_as_sac(env: Any, optimizer_kwargs: dict[str, Any] | None = None) -> 
     )
 
 
+def _default_sigint() -> None:
+    # A job started in the background (`cmd &`, nohup) ignores SIGINT, and its children inherit that: Python then
+    # raises no KeyboardInterrupt, and a Ctrl-C test would see a command that cannot be interrupted
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def start_command(*args: str, stderr: int = subprocess.PIPE) -> subprocess.Popen:
-    """``python -m sb3_sera <args>`` started as a terminal starts it: a process group of its own, one torch thread."""
+    """
+    ``python -m sb3_sera <args>`` started as a terminal starts it: a process group of its own with SIGINT's default
+    action (whatever the test runner's), one torch thread.
+    """
     return subprocess.Popen(
         [sys.executable, "-m", "sb3_sera", *args],
         stdout=subprocess.PIPE,
@@ -124,6 +133,7 @@ def start_command(*args: str, stderr: int = subprocess.PIPE) -> subprocess.Popen
         text=True,
         env={**os.environ, "OMP_NUM_THREADS": "1"},
         start_new_session=True,
+        preexec_fn=_default_sigint,
     )
 
 
