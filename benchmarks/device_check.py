@@ -94,6 +94,12 @@ def speed_rows(models: dict[str, BaseAlgorithm], reference: str, args: argparse.
     ]
 
 
+def emit(rows: list[str]) -> None:
+    """Table rows, printed at once."""
+    for row in rows:
+        print(row, flush=True)
+
+
 def main() -> None:
     route_mujoco_warnings()
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -114,33 +120,32 @@ def main() -> None:
     import sb3_sera.ctde.tasks  # noqa: F401  (registers the multi-agent ids)
 
     started = time.perf_counter()
-    rows = []
     common = dict(seed=0, learning_starts=args.learning_starts, device=args.device, verbose=0)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", CUDAGraphSkipWarning)
         timed = {"cudagraphs", "speed"} & set(args.sections)
         single = build(single_agent_models(args.env, cuda), common) if timed else {}
         multi = build(multi_agent_models(args.ma_env, cuda), common) if timed else {}
+    # Each row is printed as soon as it is measured, so that a run cut short by the machine's limit still reports.
+    print("| check | what | value | ratio |\n|---|---|---|---|", flush=True)
     if "cudagraphs" in args.sections:
         from torch._dynamo.utils import counters
 
         skips = [str(w.message) for w in caught if issubclass(w.category, CUDAGraphSkipWarning)]
-        rows.append(f"| cudagraphs | skipped graphs (Inductor's count) | {counters['inductor']['cudagraph_skips']} | |")
-        rows += [f"| cudagraphs | warning | {' '.join(message.split())[:300]} | |" for message in skips]
+        emit([f"| cudagraphs | skipped graphs (Inductor's count) | {counters['inductor']['cudagraph_skips']} | |"])
+        emit([f"| cudagraphs | warning | {' '.join(message.split())[:300]} | |" for message in skips])
     if "equality" in args.sections:
         report = [step for step in (1, 40, 100) if step <= args.equality_steps]
         for aggregation in args.aggregations:
             differences = compiled_vs_eager.differences(aggregation, "compiled", args.equality_steps, report, args.device)
             cells = ", ".join(f"after {step}: {value:.1e} ({name})" for step, (value, name) in differences.items())
-            rows.append(f"| compiled vs eager | {aggregation} | {cells} | |")
+            emit([f"| compiled vs eager | {aggregation} | {cells} | |"])
     if "speed" in args.sections:
-        rows += speed_rows(single, "SB3 SAC eager", args)
-        rows += speed_rows(multi, "SERASAC-MA eager", args)
+        emit(speed_rows(single, "SB3 SAC eager", args))
+        emit(speed_rows(multi, "SERASAC-MA eager", args))
     seconds = time.perf_counter() - started
     device = f"{th.cuda.get_device_name()}, CUDA {th.version.cuda}" if cuda else "CPU"
-    print(f"\n{device}, torch {th.__version__}; {seconds:.0f} s")
-    print("| check | what | value | ratio |\n|---|---|---|---|")
-    print("\n".join(rows), flush=True)
+    print(f"\n{device}, torch {th.__version__}; {seconds:.0f} s", flush=True)
 
 
 if __name__ == "__main__":

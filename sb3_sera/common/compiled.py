@@ -515,10 +515,14 @@ def _watching_cuda_graphs(step: Callable[..., _Output], batch: Any, arguments: d
 
 
 def read_steps(
-    outputs: Sequence[StepOutput], quantities: Sequence[str], where: Callable[[int], str], extra: th.Tensor
+    outputs: Sequence[StepOutput],
+    quantities: Sequence[str],
+    where: Callable[[int], str],
+    extra: th.Tensor | None = None,
 ) -> tuple[list[float], list[float]]:
     """
-    Read the steps' finite flags, the means of their logged values and ``extra`` in one transfer from the device.
+    Read the steps' finite flags, the means of their logged values and ``extra`` (if given, on the steps' device) in one
+    transfer from the device.
     Raise ``FloatingPointError`` naming the first non-finite quantity (``quantities``, in the order of the flags)
     and where it was (``where(gradient_step)``).
 
@@ -526,6 +530,7 @@ def read_steps(
     """
     finite = th.stack([output.finite for output in outputs])
     logged = th.stack([output.logged for output in outputs]).mean(dim=0)
+    extra = finite.new_zeros(0) if extra is None else extra
     values = th.cat([finite.flatten().float(), logged, extra.flatten().float()]).tolist()
     n_flags = finite.numel()
     if not all(values[:n_flags]):

@@ -188,7 +188,7 @@ class MASAC(_CTDEAlgorithm, SAC):
             # SB3's SAC: every target_update_interval gradient steps of this call, its count restarted at each call
             target_due=lambda gradient_step: gradient_step % self.target_update_interval == 0,
         )
-        logged, _ = read_steps(outputs, SAC_COMPILED_QUANTITIES, partial(gradient_step_context, self), th.zeros(0))
+        logged, _ = read_steps(outputs, SAC_COMPILED_QUANTITIES, partial(gradient_step_context, self))
         self._n_updates += gradient_steps
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         names = ["ent_coef", "critic_loss", "actor_loss", *(["ent_coef_loss"] if self.ent_coef_optimizer else [])]

@@ -438,7 +438,7 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
         outputs: list[CompiledStepOutput] = run_steps(
             self, partial(self._sample, batch_size), self._step_learning_rates(), gradient_steps
         )
-        logged, _ = read_steps(outputs, COMPILED_QUANTITIES, partial(gradient_step_context, self), th.zeros(0))
+        logged, _ = read_steps(outputs, COMPILED_QUANTITIES, partial(gradient_step_context, self))
         for name, value in zip(LOGGED, logged, strict=False):
             self.logger.record(f"train/{name}", value)
 

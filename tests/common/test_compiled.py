@@ -1,11 +1,14 @@
-"""The masked Adam and Polyak updates of a compiled step against torch's own, by hand-made cases."""
+"""The masked Adam and Polyak updates of a compiled step against torch's own by hand-made cases, and its read."""
+
+from typing import NamedTuple
 
 import pytest
 import torch as th
+from torch._subclasses.fake_tensor import DataDependentOutputException, FakeTensorMode
 from torch.fx.experimental.proxy_tensor import make_fx
 
 from sb3_sera.common import graph_passes
-from sb3_sera.common.compiled import AdamPlan, all_finite, masked_adam, masked_polyak
+from sb3_sera.common.compiled import AdamPlan, all_finite, masked_adam, masked_polyak, read_steps
 from sb3_sera.common.graph_passes import (
     BiasIntoPointwise,
     GraphPasses,
@@ -158,3 +161,30 @@ def test_the_timing_takes_the_transposed_order_only_when_the_product_saves_a_fif
     monkeypatch.setattr("time.perf_counter", lambda: clock[0])
     assert graph_passes.TRANSPOSE_MIN_SAVING == 0.2
     assert transposed_product_is_faster(left, right) is expected
+
+
+class _Output(NamedTuple):
+    healthy: th.Tensor
+    finite: th.Tensor
+    logged: th.Tensor
+
+
+def test_read_steps_reads_flags_means_and_extra_in_one_list():
+    outputs = [
+        _Output(th.tensor(True), th.tensor([True, True]), th.tensor([1.0, 4.0])),
+        _Output(th.tensor(True), th.tensor([True, True]), th.tensor([3.0, 8.0])),
+    ]
+    assert read_steps(outputs, ("a", "b"), str) == ([2.0, 6.0], [])
+    assert read_steps(outputs, ("a", "b"), str, th.tensor([[0.5], [1.5]])) == ([2.0, 6.0], [0.5, 1.5])
+    unhealthy = [outputs[0], _Output(th.tensor(False), th.tensor([True, False]), th.tensor([0.0, 0.0]))]
+    with pytest.raises(FloatingPointError, match="Non-finite b at step 1"):
+        read_steps(unhealthy, ("a", "b"), lambda step: f"at step {step}")
+
+
+def test_read_steps_without_extra_stays_on_the_steps_device():
+    # MASAC's and SUNRISE's compiled steps read no extra values: a CPU default for them broke both on CUDA (the GPU
+    # check of 2026-11-26). On fake CUDA tensors the read gets as far as its one transfer to the host.
+    with FakeTensorMode():
+        output = _Output(th.ones((), device="cuda"), th.ones(2, device="cuda"), th.ones(2, device="cuda"))
+        with pytest.raises(DataDependentOutputException):
+            read_steps([output], ("a", "b"), str)
