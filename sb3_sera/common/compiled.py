@@ -53,7 +53,8 @@ def compile_step(step: Callable[..., _Output], mode: CompileMode) -> Callable[..
     (``size_asserts``, ``alignment_asserts``: two Python calls per matrix product, 2% of a SERASAC step on a CPU), and
     a linear layer whose output only feeds pointwise operations adds its bias in them
     (:class:`~sb3_sera.common.graph_passes.BiasIntoPointwise`), and a product with a narrow output runs transposed
-    where the library runs it faster so (:class:`~sb3_sera.common.graph_passes.TransposeNarrowProducts`).
+    where the library runs it faster so (:class:`~sb3_sera.common.graph_passes.TransposeNarrowProducts`), and the
+    random draws run in program order, as eager draws them (:class:`~sb3_sera.common.graph_passes.KeepRandomOrder`).
     """
     compiled = th.compile(step, fullgraph=True, dynamic=False, options=step_options(mode))
 
@@ -67,14 +68,14 @@ def compile_step(step: Callable[..., _Output], mode: CompileMode) -> Callable[..
 def step_options(mode: CompileMode) -> dict[str, Any]:
     """Inductor's options for a gradient step compiled with ``mode`` (:func:`compile_step`)."""
     # Inductor is imported where a step is compiled, not where the package is: it takes seconds
-    from sb3_sera.common.graph_passes import BiasIntoPointwise, GraphPasses, TransposeNarrowProducts
+    from sb3_sera.common.graph_passes import BiasIntoPointwise, GraphPasses, KeepRandomOrder, TransposeNarrowProducts
 
     return {
         "fallback_random": True,
         "triton.cudagraphs": mode == "reduce-overhead",
         "size_asserts": False,
         "alignment_asserts": False,
-        "post_grad_custom_post_pass": GraphPasses(BiasIntoPointwise(), TransposeNarrowProducts()),
+        "post_grad_custom_post_pass": GraphPasses(BiasIntoPointwise(), TransposeNarrowProducts(), KeepRandomOrder()),
     }
 
 

@@ -6,6 +6,7 @@ imported where a step is compiled.
 
 import time
 from collections.abc import Callable
+from itertools import pairwise
 from typing import Any
 
 import torch as th
@@ -132,6 +133,50 @@ class TransposeNarrowProducts(SourcePass):
             total.meta["val"] = product.meta["val"].permute(1, 0)
             node.replace_all_uses_with(total)
             graph.erase_node(node)
+
+
+def random_draws(graph: th.fx.Graph) -> list[th.fx.Node]:
+    """The graph's random draws: its calls of operators tagged ``nondeterministic_seeded``, in program order."""
+    return [
+        node
+        for node in graph.nodes
+        if node.op == "call_function"
+        and isinstance(node.target, th._ops.OpOverload)
+        and th.Tag.nondeterministic_seeded in node.target.tags
+    ]
+
+
+def torch_keeps_random_order() -> bool:
+    """Whether this torch's Inductor keeps random draws in program order by itself (from torch 2.13)."""
+    from torch._inductor.fx_passes import post_grad
+
+    return hasattr(post_grad, "_chain_random_ops_for_ordering")
+
+
+class KeepRandomOrder(SourcePass):
+    """
+    An Inductor pass that keeps a step's random draws in program order. A compiled step draws from torch's generator
+    as eager code does (``fallback_random``), so each draw gets eager's numbers only if the draws run in eager's order;
+    but the draws depend on no data of each other, and Inductor's scheduler may reorder them (PyTorch issue 181136;
+    the likely cause of a compiled SERASAC step differing from eager by 1e-3 after one step on CUDA with torch 2.11,
+    ``docs/speed.md``).
+    Each draw after the first is made to depend on the one before it (``control_deps``), as torch's Inductor does by
+    itself from 2.13 (``_chain_random_ops_for_ordering``), where this pass leaves the graph to it.
+
+    :param always: chain the draws even where torch does (for tests)
+    """
+
+    def __init__(self, always: bool = False):
+        self.always = always
+
+    def __call__(self, graph: th.fx.Graph) -> None:
+        if torch_keeps_random_order() and not self.always:
+            return
+        from torch._inductor.fx_passes.control_dependencies import preserve_node_ordering
+        from torch.utils._ordered_set import OrderedSet
+
+        draws = random_draws(graph)
+        preserve_node_ordering(graph, {later: OrderedSet([earlier]) for earlier, later in pairwise(draws)})
 
 
 class GraphPasses(CustomGraphPass):

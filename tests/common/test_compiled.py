@@ -4,14 +4,16 @@ from typing import NamedTuple
 
 import pytest
 import torch as th
+from torch._inductor.fx_passes.control_dependencies import control_deps
 from torch._subclasses.fake_tensor import DataDependentOutputException, FakeTensorMode
 from torch.fx.experimental.proxy_tensor import make_fx
 
 from sb3_sera.common import graph_passes
-from sb3_sera.common.compiled import AdamPlan, all_finite, masked_adam, masked_polyak, read_steps
+from sb3_sera.common.compiled import AdamPlan, all_finite, masked_adam, masked_polyak, read_steps, step_options
 from sb3_sera.common.graph_passes import (
     BiasIntoPointwise,
     GraphPasses,
+    KeepRandomOrder,
     TransposeNarrowProducts,
     transposed_product_is_faster,
 )
@@ -188,3 +190,64 @@ def test_read_steps_without_extra_stays_on_the_steps_device():
         output = _Output(th.ones((), device="cuda"), th.ones(2, device="cuda"), th.ones(2, device="cuda"))
         with pytest.raises(DataDependentOutputException):
             read_steps([output], ("a", "b"), str)
+
+
+def three_draws(x: th.Tensor) -> th.Tensor:
+    """Three random draws that depend on no data of each other, between independent products."""
+    first = th.randn(4, 3)
+    product = x @ x.T
+    second = th.rand(4, 3)
+    third = th.randn(4, 3)
+    return first + 2 * second + 3 * third + product.sum()
+
+
+def test_keep_random_order_chains_each_draw_to_the_one_before():
+    x = th.randn(4, 4)
+    graph_module = make_fx(three_draws, tracing_mode="fake")(x)
+    draws = graph_passes.random_draws(graph_module.graph)
+    assert [node.target for node in draws] == [th.ops.aten.randn.default, th.ops.aten.rand.default, th.ops.aten.randn.default]
+    KeepRandomOrder(always=True)(graph_module.graph)
+    graph_module.recompile()
+    # The first draw is left as it was; the second and third now run after the draw before them (control_deps)
+    chained = [node for node in graph_module.graph.nodes if node.op == "call_function" and node.target is control_deps]
+    assert len(chained) == 2
+    assert chained[0].args[0] == (draws[0],) and chained[1].args[0] == (chained[0],)
+    assert graph_passes.random_draws(graph_module.graph) == [draws[0]]
+    # Same draws, same values as the function itself
+    th.manual_seed(3)
+    expected = three_draws(x)
+    th.manual_seed(3)
+    th.testing.assert_close(graph_module(x), expected)
+
+
+def test_keep_random_order_leaves_the_chaining_to_a_torch_that_does_it():
+    graph_module = make_fx(three_draws, tracing_mode="fake")(th.randn(4, 4))
+    before = [node.target for node in graph_module.graph.nodes]
+    KeepRandomOrder()(graph_module.graph)
+    changed = [node.target for node in graph_module.graph.nodes] != before
+    assert changed is not graph_passes.torch_keeps_random_order()
+
+
+def test_a_step_compiled_with_the_draws_chained_by_this_package_draws_as_eager(monkeypatch):
+    # Torch's own chaining off and this package's on (as on torch 2.11): the graph compiles, and its draws are eager's
+    from torch._inductor.fx_passes import post_grad
+
+    monkeypatch.setattr(post_grad, "_chain_random_ops_for_ordering", lambda graph: None, raising=False)
+    monkeypatch.setattr(graph_passes, "torch_keeps_random_order", lambda: False)
+    chained = []
+    chain = KeepRandomOrder.__call__
+
+    def counting(self: KeepRandomOrder, graph: th.fx.Graph) -> None:
+        chain(self, graph)
+        chained.append(sum(node.target is control_deps for node in graph.nodes))
+
+    monkeypatch.setattr(KeepRandomOrder, "__call__", counting)
+    x = th.randn(4, 4)
+    th._dynamo.reset()
+    with th._inductor.config.patch(fx_graph_cache=False):
+        compiled = th.compile(three_draws, fullgraph=True, options=step_options(True))
+        th.manual_seed(5)
+        expected = three_draws(x)
+        th.manual_seed(5)
+        th.testing.assert_close(compiled(x), expected)
+    assert chained == [2]
