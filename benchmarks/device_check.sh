@@ -6,7 +6,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 if compgen -G ".whl/*.whl" > /dev/null; then
-    python3 -m pip install -q --no-index --no-deps --no-compile --target .gpu-site .whl/*.whl
+    # --upgrade: on a machine still warm from an earlier call, replace the copy there instead of warning per package
+    python3 -m pip install -q --upgrade --no-index --no-deps --no-compile --target .gpu-site .whl/*.whl
 fi
 export PYTHONPATH="$PWD/.gpu-site:$PWD" PYTHONUNBUFFERED=1 MUJOCO_GL=egl XLA_PYTHON_CLIENT_PREALLOCATE=false
 python3 -c "import torch, sb3_sera; print('torch', torch.__version__, 'on', torch.cuda.get_device_name())"
