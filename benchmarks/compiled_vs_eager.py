@@ -12,12 +12,15 @@ and the first step at which it passes ``--bound`` with the parameter where it do
 ``--against eager-gathered`` compares the eager path with itself, its actor value taken as the compiled step takes
 it on a GPU (every critic with a graph, the selected one gathered; on a CPU both paths run the selected critic
 alone); ``--against step-uncompiled`` with the compiled path's step function run eagerly (its masked Adam and target
-update, no ``torch.compile``).
+update, no ``torch.compile``); ``--against compiled-unordered`` with the step compiled without keeping its random
+draws in program order (:func:`unordered_draws`: how a step compiled before ``KeepRandomOrder``, with a torch before
+2.13, drew on CUDA).
 """
 
 import argparse
+import contextlib
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 from unittest import mock
 
@@ -27,11 +30,12 @@ import torch as th
 from stable_baselines3.common.logger import configure
 
 from sb3_sera import SERASAC
-from sb3_sera.common import compiled
+from sb3_sera.common import compiled, graph_passes
 from sb3_sera.sera import sera as sera_module
 from sb3_sera.sera.update import actor_value_gathered
 
 BATCH_SIZE, FILL = 32, 64
+AGAINST = ("compiled", "compiled-unordered", "eager-gathered", "step-uncompiled")
 
 
 def make_model(compile_update: bool, seed: int = 0, device: str = "cpu", **kwargs: Any) -> SERASAC:
@@ -111,11 +115,13 @@ def differences(
     step of ``report``; with a finite ``bound``, also under the key 0 the first step past it and its difference.
     """
     eager = make_model(False, actor_aggregation=aggregation, device=device)
+    if against == "compiled-unordered":
+        th._dynamo.reset()  # this process's earlier compilations of the step are not reused
     if against == "step-uncompiled":
         with mock.patch.object(compiled, "compile_step", lambda step, mode: step):
             other = make_model(True, actor_aggregation=aggregation, device=device)
     else:
-        other = make_model(against == "compiled", actor_aggregation=aggregation, device=device)
+        other = make_model(against.startswith("compiled"), actor_aggregation=aggregation, device=device)
     if against == "eager-gathered":
         other.train = gathered(other.train)  # type: ignore[method-assign]
     found: dict[int, tuple[float, str]] = {}
@@ -127,8 +133,28 @@ def differences(
         if step in report:
             found[step] = (difference, name)
 
-    train_in_step([eager, other], steps, on_step)
+    # The step is compiled at its first train() call
+    with unordered_draws() if against == "compiled-unordered" else contextlib.nullcontext():
+        train_in_step([eager, other], steps, on_step)
     return found
+
+
+@contextlib.contextmanager
+def unordered_draws() -> Iterator[None]:
+    """
+    Steps compiled in it leave their random draws in the order Inductor's scheduler gives them: neither this
+    package's :class:`~sb3_sera.common.graph_passes.KeepRandomOrder` nor torch's own chain (from torch 2.13) keeps
+    them in program order, and no compiled graph is taken from Inductor's caches.
+    """
+    from torch._inductor.fx_passes import post_grad
+
+    with (
+        mock.patch.object(graph_passes.KeepRandomOrder, "__call__", lambda self, graph: None),
+        mock.patch.object(post_grad, "_chain_random_ops_for_ordering", lambda graph: None, create=True),
+        th._inductor.config.patch(fx_graph_cache=False),
+        th._functorch.config.patch(enable_autograd_cache=False),
+    ):
+        yield
 
 
 def compare(aggregation: str, against: str, steps: int, bound: float, report: list[int], device: str) -> None:
@@ -141,7 +167,7 @@ def compare(aggregation: str, against: str, steps: int, bound: float, report: li
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--steps", type=int, default=100)
-    parser.add_argument("--against", choices=("compiled", "eager-gathered", "step-uncompiled"), default="compiled")
+    parser.add_argument("--against", choices=AGAINST, default="compiled")
     parser.add_argument("--aggregations", nargs="+", default=["median", "mean", "min"])
     parser.add_argument("--bound", type=float, default=2e-5)
     parser.add_argument("--device", default="cpu", help="the models' torch device, e.g. cuda")
