@@ -115,8 +115,6 @@ def differences(
     step of ``report``; with a finite ``bound``, also under the key 0 the first step past it and its difference.
     """
     eager = make_model(False, actor_aggregation=aggregation, device=device)
-    if against == "compiled-unordered":
-        th._dynamo.reset()  # this process's earlier compilations of the step are not reused
     if against == "step-uncompiled":
         with mock.patch.object(compiled, "compile_step", lambda step, mode: step):
             other = make_model(True, actor_aggregation=aggregation, device=device)
@@ -144,10 +142,11 @@ def unordered_draws() -> Iterator[None]:
     """
     Steps compiled in it leave their random draws in the order Inductor's scheduler gives them: neither this
     package's :class:`~sb3_sera.common.graph_passes.KeepRandomOrder` nor torch's own chain (from torch 2.13) keeps
-    them in program order, and no compiled graph is taken from Inductor's caches.
+    them in program order, and no compiled graph is taken from this process's Dynamo cache or Inductor's caches.
     """
     from torch._inductor.fx_passes import post_grad
 
+    th._dynamo.reset()
     with (
         mock.patch.object(graph_passes.KeepRandomOrder, "__call__", lambda self, graph: None),
         mock.patch.object(post_grad, "_chain_random_ops_for_ordering", lambda graph: None, create=True),

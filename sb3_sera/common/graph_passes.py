@@ -162,15 +162,10 @@ class KeepRandomOrder(SourcePass):
     ``docs/speed.md``).
     Each draw after the first is made to depend on the one before it (``control_deps``), as torch's Inductor does by
     itself from 2.13 (``_chain_random_ops_for_ordering``), where this pass leaves the graph to it.
-
-    :param always: chain the draws even where torch does (for tests)
     """
 
-    def __init__(self, always: bool = False):
-        self.always = always
-
     def __call__(self, graph: th.fx.Graph) -> None:
-        if torch_keeps_random_order() and not self.always:
+        if torch_keeps_random_order():
             return
         from torch._inductor.fx_passes.control_dependencies import preserve_node_ordering
         from torch.utils._ordered_set import OrderedSet
