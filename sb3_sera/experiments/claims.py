@@ -49,6 +49,7 @@ is below alpha and the difference lies on the claimed side, *contradicted* when 
 claim with runs planned has fewer.
 """
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -60,7 +61,7 @@ import yaml
 from sb3_sera.experiments import stats
 from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sb3_sera.experiments.records import NPZ_ERRORS, RunResult
-from sb3_sera.experiments.registry import shared_settings, unmatched_settings, unmatched_text
+from sb3_sera.experiments.registry import SHARED_SETTINGS, shared_settings, unmatched_settings, unmatched_text
 
 #: Runs each arm needs before its interval is given (a test needs as many as can give a p below its threshold)
 MIN_RUNS = 2
@@ -239,6 +240,7 @@ CLAIM_FIELDS = (
     "primary",
     "family",
     "planned",
+    "studies",
 )
 REQUIRED_FIELDS = ("id", "task", "n_timesteps", "measure", "arm", "baseline", "direction")
 DIRECTIONS = ("higher", "lower")
@@ -264,6 +266,8 @@ class Claim:
     family: str = PRIMARY_FAMILY
     #: Runs an arm the claim plans; with fewer it is interim and not decided (0: decided from MIN_RUNS on)
     planned: int = 0
+    #: Shared settings the arms may differ in (systems compared each at its own settings)
+    studies: tuple[str, ...] = ()
 
     def reads(self, run: RunResult) -> bool:
         """Whether the claim reads ``run`` (its seed within :attr:`seeds`)."""
@@ -272,6 +276,14 @@ class Claim:
     def reads_seed(self, seed: int) -> bool:
         """Whether the claim reads runs of ``seed`` (within :attr:`seeds`)."""
         return self.seeds is None or self.seeds[0] <= seed <= self.seeds[1]
+
+    def shares_runs(self, other: "Claim") -> bool:
+        """Whether the two claims can read a run in common (a variant, task, budget and seed they both read)."""
+        same_runs = (self.task, self.n_timesteps) == (other.task, other.n_timesteps)
+        common_variant = {self.arm, self.baseline} & {other.arm, other.baseline}
+        first, last = self.seeds or (-math.inf, math.inf)
+        other_first, other_last = other.seeds or (-math.inf, math.inf)
+        return same_runs and bool(common_variant) and max(first, other_first) <= min(last, other_last)
 
 
 def load_claims(path: str | Path) -> list[Claim]:
@@ -307,6 +319,10 @@ def load_claims(path: str | Path) -> list[Claim]:
         planned = entry.get("planned", 0)
         if not isinstance(planned, int) or planned < 0:
             raise ValueError(f"{where}: planned {planned!r} is not a number of runs (an integer >= 0)")
+        studies = entry.get("studies", [])
+        if not isinstance(studies, list) or sorted(set(studies) - set(SHARED_SETTINGS)):
+            allowed = list(SHARED_SETTINGS)
+            raise ValueError(f"{where}: studies {studies!r} is not a list of shared settings; allowed: {allowed}")
         if "family" in entry and not entry.get("primary", False):
             raise ValueError(f"{where}: a family is for primary claims (primary: true); exploratory claims have none")
         if entry["id"] in seen:
@@ -326,6 +342,7 @@ def load_claims(path: str | Path) -> list[Claim]:
                 seeds=(seeds[0], seeds[1]) if seeds is not None else None,
                 family=str(entry.get("family", PRIMARY_FAMILY)),
                 planned=planned,
+                studies=tuple(studies),
             )
         )
     return claims
@@ -375,10 +392,10 @@ def group_studies(group: Any) -> set[str]:
     return set.intersection(*(set(run.studies) for run in group.runs)) if group.runs else set()
 
 
-def groups_unmatched(first: Any, second: Any) -> dict[str, dict[str, Any]]:
-    """The shared settings two report groups differ in, but those both their comparisons studied."""
+def groups_unmatched(first: Any, second: Any, studied: Sequence[str] = ()) -> dict[str, dict[str, Any]]:
+    """The shared settings two report groups differ in, but those both their comparisons studied and ``studied``."""
     settings = {first.label: group_settings(first), second.label: group_settings(second)}
-    return unmatched_settings(settings, sorted(group_studies(first) & group_studies(second)))
+    return unmatched_settings(settings, sorted(group_studies(first) & group_studies(second) | set(studied)))
 
 
 @dataclass
@@ -402,6 +419,8 @@ class ClaimResult:
     verdict: str = "waiting for runs"
     #: Why there is no test, or which settings group was used
     note: str = ""
+    #: Its arms' means are not shown: the claim is interim, or reads runs of an interim claim
+    withheld: bool = False
 
 
 def _matched_groups(claim: Claim, groups: Sequence[Any]) -> tuple[Any, Any, str]:
@@ -411,9 +430,9 @@ def _matched_groups(claim: Claim, groups: Sequence[Any]) -> tuple[Any, Any, str]
     if not arms or not baselines:
         missing = [name for name, found in ((claim.arm, arms), (claim.baseline, baselines)) if not found]
         return None, None, f"no runs of {' or '.join(missing)}"
-    pairs = [(a, b) for a in arms for b in baselines if not groups_unmatched(a, b)]
+    pairs = [(a, b) for a in arms for b in baselines if not groups_unmatched(a, b, claim.studies)]
     if not pairs:
-        return None, None, f"unmatched: {unmatched_text(groups_unmatched(arms[0], baselines[0]))}"
+        return None, None, f"unmatched: {unmatched_text(groups_unmatched(arms[0], baselines[0], claim.studies))}"
     arm, baseline = max(pairs, key=lambda pair: (len(pair[0].runs), len(pair[1].runs)))
     others = len(arms) + len(baselines) - 2
     return arm, baseline, (f"matched settings groups ({others} other group(s) left out)" if others else "")
@@ -443,6 +462,7 @@ def evaluate(claims: Sequence[Claim], groups: Sequence[Any], alpha: float = ALPH
         if arm is None:
             continue
         _test(result, alpha / sizes[claim.family] if claim.primary else alpha)
+    _withhold(results)
     _adjust(results)
     for result in results:
         if result.adjusted_p is None or result.difference is None:
@@ -459,12 +479,11 @@ def _test(result: ClaimResult, threshold: float) -> None:
     """
     values, claim = (result.arm_values, result.baseline_values), result.claim
     n_arm, n_baseline = len(values[0]), len(values[1])
-    if min(n_arm, n_baseline) < max(claim.planned, MIN_RUNS):
-        result.verdict = (
-            f"interim ({n_arm} and {n_baseline} of {claim.planned} runs)"
-            if min(n_arm, n_baseline) < claim.planned
-            else f"too few runs to decide (fewer than {MIN_RUNS} an arm)"
-        )
+    if min(n_arm, n_baseline) < claim.planned:
+        result.verdict, result.withheld = f"interim ({n_arm} and {n_baseline} of {claim.planned} runs)", True
+        return
+    if min(n_arm, n_baseline) < MIN_RUNS:
+        result.verdict = f"too few runs to decide (fewer than {MIN_RUNS} an arm)"
         if n_arm and n_baseline:
             result.difference = float(values[0].mean() - values[1].mean())
         return
@@ -474,6 +493,20 @@ def _test(result: ClaimResult, threshold: float) -> None:
         result.verdict = f"too few runs to decide (smallest possible p {decision.smallest_p:.3g})"
         return
     result.p_value, result.permutation_p, result.welch_p = decision.p, decision.permutation_p, decision.welch_p
+
+
+def _withhold(results: Sequence[ClaimResult]) -> None:
+    """
+    Withhold every number of a claim that reads runs of an interim claim (it would tell the interim state): its
+    difference, interval, p-values and arms' means; it enters the multiplicity adjustments as untested (p = 1).
+    """
+    interim = [result.claim for result in results if result.claim.planned and result.verdict.startswith("interim")]
+    for result in results:
+        holding = [claim.id for claim in interim if claim is not result.claim and claim.shares_runs(result.claim)]
+        if holding and not result.withheld:
+            result.difference = result.low = result.high = None
+            result.p_value = result.permutation_p = result.welch_p = None
+            result.verdict, result.withheld = f"withheld while {', '.join(holding)} is interim", True
 
 
 def _adjust(results: Sequence[ClaimResult]) -> None:
@@ -530,8 +563,9 @@ def claims_table(results: Sequence[ClaimResult], primary: bool) -> list[str]:
             if result.low is not None
             else _format(result.difference)
         )
-        arm_mean = _format(float(result.arm_values.mean())) if len(result.arm_values) else ""
-        base_mean = _format(float(result.baseline_values.mean())) if len(result.baseline_values) else ""
+        shown = not result.withheld
+        arm_mean = _format(float(result.arm_values.mean())) if shown and len(result.arm_values) else ""
+        base_mean = _format(float(result.baseline_values.mean())) if shown and len(result.baseline_values) else ""
         verdict = result.verdict + (f" ({result.note})" if result.note else "")
         lines.append(
             f"| {claim.id}: SERA {claim.direction} | {claim.source} | {measure.text} "

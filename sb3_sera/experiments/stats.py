@@ -155,6 +155,30 @@ def decision_p_value(sample: ArrayLike, baseline: ArrayLike, permutations: int =
     return max(permutation, welch), permutation, welch
 
 
+def welch_power(difference: float, std: float, baseline_std: float, n: int, n_baseline: int, alpha: float = 0.05) -> float:
+    """
+    The power of the two-sided Welch t-test at level ``alpha`` against a true difference of means ``difference``
+    between normal arms of standard deviations ``std`` and ``baseline_std`` with ``n`` and ``n_baseline`` runs: the
+    noncentral t distribution at the Welch-Satterthwaite degrees of freedom (the chance of rejecting on either side).
+    """
+    from scipy import stats  # where it is used: SciPy's statistics take seconds to import
+
+    variance_a, variance_b = std**2 / n, baseline_std**2 / n_baseline
+    scale = math.sqrt(variance_a + variance_b)
+    df = (variance_a + variance_b) ** 2 / (variance_a**2 / (n - 1) + variance_b**2 / (n_baseline - 1))
+    critical = stats.t.ppf(1 - alpha / 2, df)
+    shift = difference / scale
+    return float(stats.nct.sf(critical, df, shift) + stats.nct.cdf(-critical, df, shift))
+
+
+def runs_for_power(difference: float, std: float, baseline_std: float, power: float = 0.8, alpha: float = 0.05) -> int:
+    """The fewest runs an arm (the same in both) at which :func:`welch_power` reaches ``power``."""
+    n = 2
+    while welch_power(difference, std, baseline_std, n, n, alpha) < power:
+        n += 1
+    return n
+
+
 class Decision(NamedTuple):
     """What :func:`decide` finds: the difference of means with its Welch interval, and the test where one can run."""
 

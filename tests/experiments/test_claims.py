@@ -124,6 +124,11 @@ def test_declared_claims_are_one_holm_family_and_need_matched_settings(tmp_path)
     corr = _decided(tmp_path, declared[:1])[2][0]
     assert corr.verdict == "waiting for runs" and corr.p_value is None
     assert corr.note == "unmatched: learning_starts: serasac=100, sera_nolr=50"
+    # Unless the claim compares the arms each at its own settings (it names what may differ)
+    systems = claims.Claim(
+        "systems", "HalfCheetah-v5", 300, "mc_error_corr", "serasac", "sera_nolr", "lower", studies=("learning_starts",)
+    )
+    assert _decided(tmp_path, [systems])[2][0].verdict == "supported"
 
 
 def test_seeds_families_and_planned_runs(tmp_path):
@@ -157,18 +162,31 @@ def test_seeds_families_and_planned_runs(tmp_path):
     assert lines[0] == "Primary claims, family 'paper' (Holm-adjusted within the family):"
     assert "Primary claims, family 'b' (Holm-adjusted within the family):" in lines
     assert "('paper': 1, 'b': 1 claims;" in lines[-1]
-    # Fewer runs than planned: interim, with the difference so far and no test
-    short = claims.Claim("short", "HalfCheetah-v5", 300, "final_return", "serasac", "sera_nolr", "higher", planned=9)
-    result = _decided(tmp_path, [short])[2][0]
-    assert result.verdict == "interim (8 and 8 of 9 runs)" and result.p_value is None
-    assert result.difference == pytest.approx(0.0)
+    # Fewer runs than planned: interim, nothing shown but the numbers of runs
+    short = claims.Claim(
+        "short", "HalfCheetah-v5", 300, "final_return", "serasac", "sera_nolr", "higher", seeds=(0, 7), planned=9
+    )
+    related = [
+        claims.Claim("pooled", "HalfCheetah-v5", 300, "auc", "serasac", "sera_nolr", "higher", seeds=(7, 20)),
+        claims.Claim("other-seeds", "HalfCheetah-v5", 300, "auc", "serasac", "sera_nolr", "higher", seeds=(20, 29)),
+        claims.Claim("other-task", "Ant-v5", 300, "auc", "serasac", "sera_nolr", "higher"),
+    ]
+    result, pooled, other_seeds, other_task = _decided(tmp_path, [short, *related])[2]
+    assert result.verdict == "interim (8 and 8 of 9 runs)" and result.withheld
+    assert result.p_value is None and result.difference is None and result.low is None
+    # A claim that reads one of its runs (seed 7) tells nothing either, and counts as untested in the adjustment
+    assert pooled.verdict == "withheld while short is interim" and pooled.withheld
+    assert len(pooled.arm_values) == 1 and pooled.difference is pooled.p_value is pooled.adjusted_p is None
+    assert not other_seeds.withheld and not other_task.withheld
+    rows = [line for line in claims.claims_table([result, pooled], False) if line.startswith("| short") or "pooled" in line]
+    assert [row.split(" | ")[5:9] for row in rows] == [["8 vs 8", "", "", ""], ["1 vs 1", "", "", ""]]
 
 
 def test_the_ledger_declares_its_claims():
     declared = claims.load_claims(Path(__file__).parents[2] / "results" / "claims.yml")
     primary = [claim for claim in declared if claim.primary]
     assert [claim.family for claim in primary].count("paper") == 6
-    assert {claim.task for claim in primary} == {"sb3_sera/HalfCheetah-6x1-v0"}
+    assert {claim.task for claim in primary} == {"sb3_sera/HalfCheetah-6x1-v0", "sb3_sera/SimpleSpread-v0"}
     assert all(claims.MEASURES[claim.measure].paper_units for claim in primary)
     # The confirmatory test of SERA's weighting: a family of its own, on the new seeds alone, 20 runs an arm planned
     confirmatory = [claim for claim in primary if claim.family == "aggregation"]
@@ -177,10 +195,20 @@ def test_the_ledger_declares_its_claims():
     ]
     # The claims declared for seeds 0-9 read none of the confirmatory runs; the pooled contrast is exploratory
     later = {"ma-return-ensemble-mean-confirmatory", "ma-return-ensemble-mean-pooled"}
+    later |= {"ma-return-iet", "ma-return-mappo"}
     multiagent = [claim for claim in declared if claim.task == "sb3_sera/HalfCheetah-6x1-v0"]
     assert {claim.seeds for claim in multiagent if claim.id not in later} == {(0, 9)}
     pooled = next(claim for claim in declared if claim.id == "ma-return-ensemble-mean-pooled")
     assert pooled.seeds == (0, 29) and not pooled.primary
+    # Simple Spread's: a family of its own, 20 runs an arm planned, the claims beside it reading its runs
+    spread = [claim for claim in declared if claim.task == "sb3_sera/SimpleSpread-v0"]
+    assert [(c.id, c.primary, c.family, c.planned) for c in spread if c.primary] == [
+        ("spread-return-ensemble-mean-confirmatory", True, "spread", 20)
+    ]
+    assert all(claim.shares_runs(spread[0]) for claim in spread)
+    # The paper's systems, each at its own settings: only ACE's replay settings differ from SERASAC's
+    systems = {claim.baseline: claim.studies for claim in declared if claim.id.endswith(("sunrise", "ace", "iet", "mappo"))}
+    assert systems == {"sunrise": (), "ace": ("batch_size", "tau"), "iet": (), "mappo": ()}
 
 
 @pytest.mark.parametrize(
@@ -236,6 +264,19 @@ def test_the_ledger_declares_its_claims():
                 "family": "f",
             },
             "a family is for primary claims",
+        ),
+        (
+            {
+                "id": "a",
+                "task": "T",
+                "n_timesteps": 1,
+                "measure": "auc",
+                "arm": "x",
+                "baseline": "y",
+                "direction": "higher",
+                "studies": ["net_arch"],
+            },
+            r"studies \['net_arch'\] is not a list of shared settings; allowed: \['learning_starts'",
         ),
     ],
 )

@@ -12,11 +12,13 @@ from sb3_sera.experiments.stats import (
     iqm,
     min_max_normalized,
     normalized_auc,
+    runs_for_power,
     sample_std,
     smallest_p_value,
     studentized_permutation_p_value,
     welch_interval,
     welch_p_value,
+    welch_power,
 )
 
 
@@ -37,6 +39,22 @@ def test_welch_p_value_matches_scipy_and_a_hand_computation():
     t, df = -3.5 / (5 / 12 + 2) ** 0.5, (5 / 12 + 2) ** 2 / ((5 / 12) ** 2 / 3 + 1)
     assert welch_p_value(a, b) == pytest.approx(2 * stats.t.sf(abs(t), df))
     assert welch_p_value([1.0], b) is None
+
+
+def test_welch_power_matches_a_simulation_and_the_declared_figures():
+    # 40,000 draws of 8 against 8 normal runs, SDs 1 and 1.5, a true difference of 1: the share Welch's test rejects
+    rng = np.random.default_rng(0)
+    a, b = rng.normal(1.0, 1.0, (40_000, 8)), rng.normal(0.0, 1.5, (40_000, 8))
+    rejected = stats.ttest_ind(a, b, axis=1, equal_var=False).pvalue < 0.05
+    assert welch_power(1.0, 1.0, 1.5, 8, 8) == pytest.approx(rejected.mean(), abs=0.01)
+    # No difference: the test's size
+    assert welch_power(0.0, 1.0, 1.5, 8, 8) == pytest.approx(0.05, abs=0.002)
+    # results/claims.yml's figures: HalfCheetah 6x1 (seen at seeds 0-9, and the paper's) and Simple Spread (half the
+    # paper's standardized effect, and all of it)
+    assert welch_power(248, 478, 307, 20, 20) == pytest.approx(0.47, abs=0.005) and runs_for_power(248, 478, 307) == 43
+    assert welch_power(689, 711, 721, 20, 20) == pytest.approx(0.84, abs=0.005) and runs_for_power(689, 711, 721) == 18
+    assert welch_power(2, 2, 2.3, 20, 20) == pytest.approx(0.82, abs=0.005) and runs_for_power(2, 2, 2.3) == 20
+    assert welch_power(2, 2, 2.3, 19, 19) < 0.8 and runs_for_power(4, 2, 2.3) == 6
 
 
 def test_improvement_percent():
