@@ -10,8 +10,7 @@ and the first step at which it passes ``--bound`` with the parameter where it do
     OMP_NUM_THREADS=1 python benchmarks/compiled_vs_eager.py --against eager-gathered   # no compilation
 
 ``--against eager-gathered`` compares the eager path with itself, its actor value taken as the compiled step takes
-it on a GPU (every critic with a graph, the selected one gathered; on a CPU both paths run the selected critic
-alone); ``--against step-uncompiled`` with the compiled path's step function run eagerly (its masked Adam and target
+it (every critic with a graph, the selected one gathered, where the eager path runs the selected critic alone); ``--against step-uncompiled`` with the compiled path's step function run eagerly (its masked Adam and target
 update, no ``torch.compile``); ``--against compiled-unordered`` with the step compiled without keeping its random
 draws in program order (:func:`unordered_draws`: how a step compiled before ``KeepRandomOrder``, with a torch before
 2.13, drew on CUDA).
@@ -30,7 +29,8 @@ import torch as th
 from stable_baselines3.common.logger import configure
 
 from sb3_sera import SERASAC
-from sb3_sera.common import compiled, graph_passes
+from sb3_sera.common import graph_passes
+from sb3_sera.common.compiled import base as compiled_base
 from sb3_sera.sera import sera as sera_module
 from sb3_sera.sera.update import actor_value_gathered
 
@@ -98,7 +98,7 @@ def train_in_step(models: list[SERASAC], steps: int, on_step: Callable[[int], No
 
 
 def gathered(train: Callable[..., None]) -> Callable[..., None]:
-    """``train`` with the eager actor value taken as the compiled step takes it on a GPU (:func:`actor_value_gathered`)."""
+    """``train`` with the eager actor value taken as the compiled step takes it (:func:`actor_value_gathered`)."""
 
     def run(*args: Any, **kwargs: Any) -> None:
         with mock.patch.object(sera_module, "actor_value", actor_value_gathered):
@@ -116,7 +116,7 @@ def differences(
     """
     eager = make_model(False, actor_aggregation=aggregation, device=device)
     if against == "step-uncompiled":
-        with mock.patch.object(compiled, "compile_step", lambda step, mode: step):
+        with mock.patch.object(compiled_base, "compile_step", lambda step, mode: step):
             other = make_model(True, actor_aggregation=aggregation, device=device)
     else:
         other = make_model(against.startswith("compiled"), actor_aggregation=aggregation, device=device)

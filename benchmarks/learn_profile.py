@@ -39,14 +39,14 @@ PARTS: list[tuple[str, list[tuple[str, str]]]] = [
     ("env step", [("base_vec_env.py", "step")]),
     ("buffer add", [("buffers.py", "add")]),
     ("buffer sample", [("buffers.py", "sample")]),
-    ("host read", [("compiled.py", "read_steps")]),
+    ("host read", [("compiled/base.py", "read_steps")]),
     ("logging", [("logger.py", "record"), ("logger.py", "dump")]),
     ("callbacks", [("callbacks.py", "on_step")]),
 ]
 
 
 #: The functions that log from inside ``train()`` (their ``Logger.record`` calls are logging, not the gradient step)
-TRAIN_LOGGERS = ("train", "train_compiled", "_end_train", "record_means")
+TRAIN_LOGGERS = ("train", "_train_compiled", "_end_train", "record_means")
 
 
 def _cumulative(table: dict[tuple[str, int, str], tuple[Any, ...]], functions: list[tuple[str, str]]) -> float:

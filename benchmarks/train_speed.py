@@ -34,7 +34,6 @@ from timing import add_interleave_arguments, interleaved_rates, median_iqr
 from sb3_sera import SERASAC
 from sb3_sera.common.compiled import CompileMode, count_graph_breaks
 from sb3_sera.common.mujoco_log import route_mujoco_warnings
-from sb3_sera.sera.compiled_step import gradient_step
 
 
 def build_model(
@@ -99,7 +98,7 @@ def main() -> None:
         compiled = models["SERASAC+compile"]
         assert isinstance(compiled, SERASAC) and compiled.replay_buffer is not None
         batch = compiled.replay_buffer.sample(args.batch_size)
-        graphs, breaks = count_graph_breaks(compiled, partial(gradient_step, compiled), batch)
+        graphs, breaks = count_graph_breaks(compiled, compiled._gradient_step_graph, batch)
         print(f"compiled SERASAC step (compile_update={compile_mode!r}): {graphs} graph(s), {breaks} graph break(s)")
 
 

@@ -91,6 +91,82 @@ def assert_non_finite_stops_the_step(model: Any, batch_size: int) -> None:
     assert_same_state(before, snapshot(model, optimizers=True))
 
 
+def assert_compiled_equals_eager(
+    build: Any, batch_size: int, gradient_steps: int = 4, logs: tuple[str, ...] = ("train/actor_loss",)
+) -> tuple[Any, Any, list[dict[str, float]]]:
+    """
+    ``build(False)`` and ``build(True)`` (a model eager, then one with ``compile_update=True``), each trained
+    ``gradient_steps`` steps from the same random state, end with the same parameters, optimizer states and logged
+    values (``logs`` among them) up to float rounding (:func:`assert_close_state`, and 1e-4 relative for the logs).
+
+    :return: the eager model, the compiled one and what each logged
+    """
+    from stable_baselines3.common.utils import set_random_seed
+
+    models, logged = [build(False), build(True)], []
+    for model in models:
+        set_random_seed(1)
+        model.train(gradient_steps=gradient_steps, batch_size=batch_size)
+        logged.append({key: value for key, value in model.logger.name_to_value.items() if key.startswith("train/")})
+    eager, compiled = models
+    assert compiled._compiled_step is not None and eager._compiled_step is None
+    assert_close_state(snapshot(eager, optimizers=True), snapshot(compiled, optimizers=True))
+    assert logged[0].keys() == logged[1].keys() and set(logs) <= set(logged[1])
+    for key, value in logged[0].items():
+        assert logged[1][key] == pytest.approx(value, rel=1e-4, abs=1e-6), key
+    return eager, compiled, logged
+
+
+#: How far apart compiled and eager parameters may be after 100 gradient steps and 200 steps of ``learn()`` (issue 28;
+#: SERASAC measured at most 8e-7, benchmarks/compiled_vs_eager.py)
+COMPILED_BOUND = 2e-5
+
+
+def assert_compiled_stays_with_eager(models: list[Any], batch_size: int, learn_steps: int = 200) -> None:
+    """
+    An eager and a compiled model with the same state (:func:`assert_compiled_equals_eager`'s) stay within
+    :data:`COMPILED_BOUND` of each other over 100 gradient steps on a fixed buffer (the same batch and draws at each),
+    then ``learn_steps`` steps of ``learn()`` from the same random state.
+    """
+    from stable_baselines3.common.utils import set_random_seed
+
+    def largest_difference() -> float:
+        first, second = (snapshot(model) for model in models)
+        return max((first[key].float() - second[key].float()).abs().max().item() for key in first)
+
+    for step in range(100):
+        for model in models:
+            set_random_seed(step)
+            model.train(gradient_steps=1, batch_size=batch_size)
+    assert largest_difference() < COMPILED_BOUND
+    if not learn_steps:
+        return
+    for model in models:
+        set_random_seed(1000)
+        model.learn(learn_steps, reset_num_timesteps=False)
+    assert models[0]._n_updates == models[1]._n_updates
+    assert largest_difference() < COMPILED_BOUND
+
+
+def assert_gpu_trained_model_loads_on_the_cpu(model: Any, path: Path, env: Any) -> None:
+    """
+    ``model`` (``compile_update=True``, on the CPU) saved as a GPU-trained one would be (``compile_update`` set to
+    ``"reduce-overhead"``) loads with ``load(path)`` and ``load(path, device="cpu")``: one warning that says what
+    changed, compiled without CUDA graphs, the same state; then it predicts and learns on.
+    """
+    model.compile_update = "reduce-overhead"
+    model.save(path)
+    model.compile_update = True
+    for device in ("cpu",) if th.cuda.is_available() else ("auto", "cpu"):
+        with pytest.warns(UserWarning, match=r"needs a CUDA device; the model is on 'cpu', so .* \(compile_update=True\)"):
+            loaded = type(model).load(path, env=env, device=device)
+        assert loaded.compile_update is True and loaded._compiled_step is not None
+        assert_same_state(snapshot(model), snapshot(loaded))
+        loaded.predict(loaded.observation_space.sample(), deterministic=True)
+        loaded.replay_buffer = model.replay_buffer
+        loaded.learn(2, reset_num_timesteps=False)
+
+
 def serasac_as_sac(env: Any, optimizer_kwargs: dict[str, Any] | None = None) -> Any:
     """
     SERASAC configured as SB3's SAC (two ``[256, 256]`` critics, min target and actor, fixed critic rate, beta = 0):

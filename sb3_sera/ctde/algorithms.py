@@ -7,8 +7,7 @@ Each is its SB3 algorithm unchanged, with the ``"CTDEPolicy"`` alias: ``MASAC`` 
 """
 
 import inspect
-from functools import partial
-from typing import Any, ClassVar, NamedTuple
+from typing import Any, ClassVar
 
 import torch as th
 from stable_baselines3 import DDPG, PPO, SAC, TD3
@@ -23,18 +22,20 @@ from torch.nn import functional as F
 from sb3_sera.common.arguments import check_keywords
 from sb3_sera.common.capabilities import Capabilities
 from sb3_sera.common.compiled import (
-    COMPILE_MODES,
+    TD3_QUANTITIES,
     AdamPlan,
-    CompileMode,
-    compile_model_step,
+    AdamState,
+    CompiledUpdate,
+    StepOutput,
     masked_polyak,
     masked_sac_update,
-    plans_learning_rates,
-    read_steps,
-    run_steps,
+    masked_td3_update,
+    sac_logged,
+    sac_plans,
+    td3_plans,
 )
-from sb3_sera.common.finite import FiniteUpdates, check_rollout_buffer, gradient_step_context, with_env_step_check
-from sb3_sera.common.hyperparameters import check_choice, check_hyperparameters
+from sb3_sera.common.finite import FiniteUpdates, check_rollout_buffer, with_env_step_check
+from sb3_sera.common.hyperparameters import check_hyperparameters
 from sb3_sera.ctde.policies import MAPPOPolicy, MASACPolicy, MATD3Policy, fill_agent_layout, make_env_for_policy
 
 
@@ -67,6 +68,8 @@ class _CTDEAlgorithm(Capabilities, BaseAlgorithm):
     def __init__(self, policy: str | type[BasePolicy], env: GymEnv | str | None, *args: Any, **kwargs: Any):
         # An unknown keyword is named with the algorithm's own (IET's latent_dim too), not SB3's class
         check_keywords(type(self), kwargs, policy)
+        if isinstance(self, CompiledUpdate):
+            self._take_compile_update(kwargs.pop("compile_update", False))
         sb3_class = _sb3_algorithm(type(self))
         arguments = inspect.signature(sb3_class).bind(policy, env, *args, **kwargs).arguments
         arguments = check_hyperparameters(arguments, on_policy=issubclass(sb3_class, OnPolicyAlgorithm))
@@ -87,34 +90,22 @@ class _CTDEAlgorithm(Capabilities, BaseAlgorithm):
         return super()._init_callback(with_env_step_check(callback), progress_bar)
 
     def train(self, *args: Any, **kwargs: Any) -> None:
-        """SB3's ``train``, watched for non-finite values (see the class's docstring)."""
+        """SB3's ``train``, watched for non-finite values (see the class's docstring), or through the compiled step."""
+        if isinstance(self, CompiledUpdate) and self._compiled_step is not None:
+            self._train_compiled_call(*args, **kwargs)
+            return
         replay_buffer = self.replay_buffer if isinstance(self, OffPolicyAlgorithm) else None
         with FiniteUpdates(self, self._loss_optimizers(), replay_buffer).watch():
             super().train(*args, **kwargs)  # type: ignore[misc]  # the SB3 algorithm after this class in the bases
 
-
-#: What MASAC's compiled gradient step checks, in the order in which a cause precedes its consequences
-SAC_COMPILED_QUANTITIES = (
-    "entropy coefficient",
-    "TD target",
-    "critic loss",
-    "entropy coefficient loss",
-    "critic gradients",
-    "entropy coefficient gradient",
-    "actor loss",
-    "actor gradients",
-)
-
-
-class SACStepOutput(NamedTuple):
-    """What MASAC's compiled gradient step gives back (:class:`~sb3_sera.common.compiled.StepOutput`)."""
-
-    #: Whether this step and every earlier one of the ``train()`` call had only finite values (their updates applied)
-    healthy: th.Tensor
-    #: One flag per quantity of :data:`SAC_COMPILED_QUANTITIES`: whether it was finite
-    finite: th.Tensor
-    #: The step's entropy coefficient, critic loss, actor loss and, when it is learned, entropy coefficient loss
-    logged: th.Tensor
+    def _train_compiled_call(self, gradient_steps: int, batch_size: int = 100) -> None:
+        """SB3's ``train`` preamble and count around :meth:`.CompiledUpdate._train_compiled`."""
+        assert isinstance(self, CompiledUpdate)
+        self.policy.set_training_mode(True)
+        self._update_learning_rate(list(self._loss_optimizers().values()))
+        self._train_compiled(gradient_steps, batch_size)
+        self._n_updates += gradient_steps
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
 
 
 def _with_compile_update(signature: inspect.Signature) -> inspect.Signature:
@@ -125,45 +116,24 @@ def _with_compile_update(signature: inspect.Signature) -> inspect.Signature:
     return signature.replace(parameters=[*parameters[:index], added, *parameters[index:]])
 
 
-class MASAC(_CTDEAlgorithm, SAC):
+class MASAC(_CTDEAlgorithm, CompiledUpdate, SAC):
     """
     Multi-agent SAC: SB3's SAC with per-agent actors and twin centralized critics (``"CTDEPolicy"``).
 
     Takes SB3 SAC's parameters, and
 
-    :param compile_update: compile the whole gradient step (entropy coefficient, critic and actor updates, their Adam
-        steps and the target update) into one graph with ``torch.compile``, as SERASAC's ``compile_update``: SB3 SAC's
-        ``train()`` computed in the same order, the same values up to float rounding, Adam as a masked update (a
-        non-finite value changes nothing and raises ``FloatingPointError`` naming it when the ``train()`` call ends);
-        ``"reduce-overhead"`` replays it as a CUDA graph (``device="cuda"``). The first gradient step pays the
-        compilation (about a minute on a CPU). Needs Adam or AdamW optimizers; gSDE is not supported.
+    :param compile_update: compile the gradient step whole (:class:`.CompiledUpdate`; ``"reduce-overhead"``: CUDA graphs)
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {**SAC.policy_aliases, "CTDEPolicy": MASACPolicy}
     tunes_like: ClassVar[str | None] = "sac"
+    soft_q_critics: ClassVar[bool] = True
+    compiles_update: ClassVar[bool] = True
     __signature__ = _with_compile_update(inspect.signature(SAC))
-
-    def __init__(
-        self,
-        policy: str | type[BasePolicy],
-        env: GymEnv | str | None,
-        *args: Any,
-        compile_update: CompileMode = False,
-        **kwargs: Any,
-    ):
-        check_choice("compile_update", compile_update, COMPILE_MODES)
-        self.compile_update = compile_update
-        self._compiled_step: Any = None
-        self._adam_plans: list[AdamPlan] = []
-        super().__init__(policy, env, *args, **kwargs)
 
     def _setup_model(self) -> None:
         super()._setup_model()
-        self._compiled_step = None
-        if self.compile_update:
-            self._adam_plans, self._compiled_step = compile_model_step(
-                self, self._gradient_step_graph, self.compile_update, lambda: list(self.critic.parameters())
-            )
+        self._setup_compiled_update()
 
     def _loss_optimizers(self) -> dict[str, th.optim.Optimizer]:
         optimizers = {"critic loss": self.critic.optimizer, "actor loss": self.actor.optimizer}
@@ -171,53 +141,23 @@ class MASAC(_CTDEAlgorithm, SAC):
             return {"entropy coefficient loss": self.ent_coef_optimizer, **optimizers}
         return optimizers
 
-    def train(self, gradient_steps: int, batch_size: int = 64) -> None:
-        """SB3 SAC's ``train``: eager and watched for non-finite values, or through the compiled step."""
-        if self._compiled_step is None:
-            super().train(gradient_steps, batch_size)
-            return
-        self.policy.set_training_mode(True)
-        self._update_learning_rate(list(self._loss_optimizers().values()))
-        assert self.replay_buffer is not None
-        sample = partial(self.replay_buffer.sample, batch_size, env=self._vec_normalize_env)
-        outputs: list[SACStepOutput] = run_steps(
-            self,
-            sample,
-            self._step_learning_rates(),
-            gradient_steps,
-            # SB3's SAC: every target_update_interval gradient steps of this call, its count restarted at each call
-            target_due=lambda gradient_step: gradient_step % self.target_update_interval == 0,
-        )
-        logged, _ = read_steps(outputs, SAC_COMPILED_QUANTITIES, partial(gradient_step_context, self))
-        self._n_updates += gradient_steps
-        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
-        names = ["ent_coef", "critic_loss", "actor_loss", *(["ent_coef_loss"] if self.ent_coef_optimizer else [])]
-        for name, value in zip(names, logged, strict=True):
-            self.logger.record(f"train/{name}", value)
+    def _optimizer_plans(self) -> list[AdamPlan]:
+        return sac_plans(self.actor, self.critic, self.ent_coef_optimizer, self.log_ent_coef)
 
-    def _step_learning_rates(self) -> th.Tensor:
-        """The compiled step's ``learning_rates``: each Adam plan's current rate, in the plans' order."""
-        return plans_learning_rates(self._adam_plans, self.device)
+    def _step_flags(self, gradient_step: int) -> tuple[bool, ...]:
+        # SB3's SAC: every target_update_interval gradient steps of this call, its count restarted at each call
+        return (gradient_step % self.target_update_interval == 0,)
 
     def _gradient_step_graph(
         self,
         replay_data: ReplayBufferSamples,
         *,
         learning_rates: th.Tensor,
-        target_update: th.Tensor,
+        due: th.Tensor,
         healthy: th.Tensor,
-        states: list[list[tuple[th.Tensor, th.Tensor, th.Tensor]]],
-    ) -> SACStepOutput:
-        """
-        One gradient step of SB3 SAC's ``train()`` as one graph (``compile_update``): gradients from
-        ``torch.autograd.grad``, Adam steps and the target update masked by ``healthy`` and by whether this step's
-        values were finite, nothing read back.
-
-        :param learning_rates: each optimizer's rate, in ``_adam_plans`` order (actor, critic, entropy coefficient)
-        :param target_update: whether the target critics are updated after this step, a boolean scalar tensor
-        :param healthy: whether every earlier step of the ``train()`` call had only finite values
-        :param states: each optimizer's Adam state (:meth:`AdamPlan.state`), in ``_adam_plans`` order
-        """
+        states: list[list[AdamState]],
+    ) -> StepOutput:
+        """One gradient step of SB3 SAC's ``train()`` as one graph (:meth:`.CompiledUpdate._gradient_step_graph`)."""
         actions_pi, log_prob = self.actor.action_log_prob(replay_data.observations)
         log_prob = log_prob.reshape(-1, 1)
         ent_coef_loss = None
@@ -243,44 +183,123 @@ class MASAC(_CTDEAlgorithm, SAC):
             return (ent_coef * log_prob - min_qf_pi).mean()
 
         update = masked_sac_update(
-            self,
+            self._adam_plans,
+            states,
+            critic=self.critic,
+            critic_target=self.critic_target,
+            tau=self.tau,
             ent_coef=ent_coef,
             ent_coef_loss=ent_coef_loss,
             target_q_values=target_q_values,
             critic_loss=critic_loss,
             actor_loss=actor_loss,
             learning_rates=learning_rates,
-            target_update=target_update,
+            target_update=due[0],
             healthy=healthy,
-            states=states,
         )
-        masked_polyak(self.batch_norm_stats_target, self.batch_norm_stats, 1.0, update.applied & target_update)
-        logged = [ent_coef.reshape(()), critic_loss.detach(), update.actor_loss.detach()]
-        if ent_coef_loss is not None:
-            logged.append(ent_coef_loss.detach())
-        return SACStepOutput(healthy=update.applied, finite=update.finite, logged=th.stack(logged))
-
-    def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "_compiled_step", "_adam_plans"]
+        masked_polyak(self.batch_norm_stats_target, self.batch_norm_stats, 1.0, update.applied & due[0])
+        logged = sac_logged(ent_coef, critic_loss, update.actor_loss, ent_coef_loss)
+        return StepOutput(healthy=update.applied, finite=update.finite, logged=logged, extra=healthy.new_zeros(0))
 
 
-class MATD3(_CTDEAlgorithm, TD3):
-    """Multi-agent TD3: SB3's TD3 with per-agent deterministic actors and twin centralized critics."""
+class _CompiledTD3(CompiledUpdate, TD3):
+    """TD3's (and DDPG's) gradient step as one graph (``compile_update``), for MATD3 and MADDPG."""
+
+    compiled_quantities: ClassVar[tuple[str, ...]] = TD3_QUANTITIES
+
+    def _setup_model(self) -> None:
+        super()._setup_model()
+        self._setup_compiled_update()
+
+    def _optimizer_plans(self) -> list[AdamPlan]:
+        return td3_plans(self.actor, self.critic)
+
+    def _step_flags(self, gradient_step: int) -> tuple[bool, ...]:
+        # SB3's TD3 counts the update before the step: the actor and the targets every policy_delay updates
+        return ((self._n_updates + gradient_step + 1) % self.policy_delay == 0,)
+
+    def _record_logged(self, logged: list[float]) -> None:
+        # The critics' loss of every step; the actor's of the steps that updated it (its sum over their share)
+        critic_loss, actor_loss_sum, actor_share = logged
+        if actor_share > 0:
+            self.logger.record("train/actor_loss", actor_loss_sum / actor_share)
+        self.logger.record("train/critic_loss", critic_loss)
+
+    def _gradient_step_graph(
+        self,
+        replay_data: ReplayBufferSamples,
+        *,
+        learning_rates: th.Tensor,
+        due: th.Tensor,
+        healthy: th.Tensor,
+        states: list[list[AdamState]],
+    ) -> StepOutput:
+        """One gradient step of SB3 TD3's ``train()`` as one graph (:meth:`.CompiledUpdate._gradient_step_graph`)."""
+        discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
+        with th.no_grad():
+            noise = replay_data.actions.clone().normal_(0, self.target_policy_noise)
+            noise = noise.clamp(-self.target_noise_clip, self.target_noise_clip)
+            next_actions = (self.actor_target(replay_data.next_observations) + noise).clamp(-1, 1)
+            next_q_values = th.cat(self.critic_target(replay_data.next_observations, next_actions), dim=1)
+            next_q_values, _ = th.min(next_q_values, dim=1, keepdim=True)
+            target_q_values = replay_data.rewards + (1 - replay_data.dones) * discounts * next_q_values
+        current_q_values = self.critic(replay_data.observations, replay_data.actions)
+        critic_loss = sum(F.mse_loss(current_q, target_q_values) for current_q in current_q_values)
+        assert isinstance(critic_loss, th.Tensor)
+        update = masked_td3_update(
+            self._adam_plans,
+            states,
+            actor=self.actor,
+            actor_target=self.actor_target,
+            critic=self.critic,
+            critic_target=self.critic_target,
+            tau=self.tau,
+            target_q_values=target_q_values,
+            critic_loss=critic_loss,
+            actor_loss=lambda: -self.critic.q1_forward(replay_data.observations, self.actor(replay_data.observations)).mean(),
+            learning_rates=learning_rates,
+            actor_update=due[0],
+            healthy=healthy,
+        )
+        updated = update.applied & due[0]
+        masked_polyak(self.critic_batch_norm_stats_target, self.critic_batch_norm_stats, 1.0, updated)
+        masked_polyak(self.actor_batch_norm_stats_target, self.actor_batch_norm_stats, 1.0, updated)
+        share = due[0].to(critic_loss.dtype)
+        logged = th.stack([critic_loss.detach(), update.actor_loss.detach() * share, share])
+        return StepOutput(healthy=update.applied, finite=update.finite, logged=logged, extra=healthy.new_zeros(0))
+
+
+class MATD3(_CTDEAlgorithm, _CompiledTD3):
+    """
+    Multi-agent TD3: SB3's TD3 with per-agent deterministic actors and twin centralized critics.
+
+    Takes SB3 TD3's parameters, and
+
+    :param compile_update: compile the gradient step whole (:class:`.CompiledUpdate`; ``"reduce-overhead"``: CUDA graphs)
+    """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {**TD3.policy_aliases, "CTDEPolicy": MATD3Policy}
     tunes_like: ClassVar[str | None] = "td3"
-    __signature__ = inspect.signature(TD3)
+    compiles_update: ClassVar[bool] = True
+    __signature__ = _with_compile_update(inspect.signature(TD3))
 
     def _loss_optimizers(self) -> dict[str, th.optim.Optimizer]:
         return {"critic loss": self.critic.optimizer, "actor loss": self.actor.optimizer}
 
 
-class MADDPG(_CTDEAlgorithm, DDPG):
-    """Multi-agent DDPG: SB3's DDPG with per-agent deterministic actors and one centralized critic."""
+class MADDPG(_CTDEAlgorithm, _CompiledTD3, DDPG):
+    """
+    Multi-agent DDPG: SB3's DDPG with per-agent deterministic actors and one centralized critic.
+
+    Takes SB3 DDPG's parameters, and
+
+    :param compile_update: compile the gradient step whole (:class:`.CompiledUpdate`; ``"reduce-overhead"``: CUDA graphs)
+    """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {**DDPG.policy_aliases, "CTDEPolicy": MATD3Policy}
     tunes_like: ClassVar[str | None] = "ddpg"
-    __signature__ = inspect.signature(DDPG)
+    compiles_update: ClassVar[bool] = True
+    __signature__ = _with_compile_update(inspect.signature(DDPG))
 
     def _loss_optimizers(self) -> dict[str, th.optim.Optimizer]:
         return {"critic loss": self.critic.optimizer, "actor loss": self.actor.optimizer}

@@ -21,6 +21,7 @@ from stable_baselines3.common.type_aliases import ReplayBufferSamples
 from stable_baselines3.sac import SAC
 from torch import nn
 
+from sb3_sera.common.capabilities import ActsOnLatents, OwnTDTargets, PerCriticRates, capability
 from sb3_sera.sera.aggregation import correlation_matrix, mean_off_diagonal
 
 #: Files written beside ``evaluations.npz`` in the callback's ``log_path``
@@ -72,12 +73,11 @@ class InitialStateBiasCallback(EvalCallback):
         self.records_bias = False
 
     def _init_callback(self) -> None:
-        with_latents = getattr(self.model, "with_latents", None)
-        if with_latents is not None:
+        if capability(self.model, "acts_on_latents"):
             # A model acting on per-episode latents (IET): its evaluation episodes draw them as its training episodes do,
             # from a generator of their own seeded with the model's seed, so that evaluations are repeatable and leave
             # training's random streams alone
-            self.eval_env = with_latents(self.eval_env, seed=self.model.seed)
+            self.eval_env = cast(ActsOnLatents, self.model).with_latents(self.eval_env, seed=self.model.seed)
         super()._init_callback()
         policy = self.model.policy
         self.records_bias = _has_value_function(policy) or (
@@ -152,8 +152,9 @@ class InitialStateBiasCallback(EvalCallback):
     def _record_critic_diagnostics(self) -> None:
         model = self.model
         buffer = getattr(model, "replay_buffer", None)
-        if not isinstance(model, SAC) or buffer is None or buffer.size() == 0:
+        if not capability(model, "soft_q_critics") or buffer is None or buffer.size() == 0:
             return
+        model = cast(SAC, model)
         numpy_state = np.random.get_state()
         devices = [model.device] if model.device.type == "cuda" else []
         with th.random.fork_rng(devices=devices):
@@ -185,10 +186,9 @@ def critic_diagnostics(model: SAC, batch_size: int) -> dict[str, np.ndarray]:
     """
     assert model.replay_buffer is not None
     replay_data = model.replay_buffer.sample(batch_size, env=model.get_vec_normalize_env())
-    td_targets = getattr(model, "td_targets", None)
     with th.no_grad():
-        if td_targets is not None:
-            target_q_values, current_q_values = td_targets(replay_data)
+        if capability(model, "own_td_targets"):
+            target_q_values, current_q_values = cast(OwnTDTargets, model).td_targets(replay_data)
         else:
             target_q_values, current_q_values = sac_td_targets(model, replay_data)
         critic_corr = correlation_matrix(current_q_values)
@@ -205,9 +205,8 @@ def critic_diagnostics(model: SAC, batch_size: int) -> dict[str, np.ndarray]:
             "td_error_cov_matrix": th.cov(td_errors.T, correction=0),
         }
     result = {key: value.cpu().numpy() for key, value in values.items()}
-    critic_learning_rates = getattr(model, "critic_learning_rates", None)
-    if critic_learning_rates is not None:
-        result["critic_lr"] = np.array(critic_learning_rates())
+    if capability(model, "per_critic_rates"):
+        result["critic_lr"] = np.array(cast(PerCriticRates, model).critic_learning_rates())
     return result
 
 

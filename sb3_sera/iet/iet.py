@@ -40,11 +40,8 @@ ROUTING_LATENT_DRAWS = 8
 
 
 def _signature() -> inspect.Signature:
-    """
-    SAC's hyperparameters and ``latent_dim`` (keyword only): what rl-zoo3 files and bench grids may set (not MASAC's
-    ``compile_update``: IET's step is SB3 SAC's, eager).
-    """
-    parameters = [p for p in inspect.signature(MASAC).parameters.values() if p.name != "compile_update"]
+    """MASAC's hyperparameters and ``latent_dim`` (keyword only): what rl-zoo3 files and bench grids may set."""
+    parameters = list(inspect.signature(MASAC).parameters.values())
     latent = inspect.Parameter("latent_dim", inspect.Parameter.KEYWORD_ONLY, default=DEFAULT_LATENT_DIM, annotation=int)
     return inspect.Signature([*parameters, latent])
 
@@ -55,7 +52,7 @@ class IET(NamedRuns, MASAC):
     actors (:class:`~sb3_sera.iet.policies.IETPolicy`) conditioned on per-agent latents ``z ~ N(0, I)`` drawn at
     every episode start; the twin centralized critics read the state, every latent and the joint action.
 
-    Takes SAC's arguments (``IET("CTDEPolicy", env, learning_rate=..., ...)``) and
+    Takes MASAC's arguments (``IET("CTDEPolicy", env, learning_rate=..., compile_update=True, ...)``) and
 
     :param latent_dim: size of each agent's latent (the paper's 10), keyword only
 
@@ -71,6 +68,7 @@ class IET(NamedRuns, MASAC):
     """
 
     single_agent: ClassVar[bool] = False
+    acts_on_latents: ClassVar[bool] = True
     tunes_like: ClassVar[str | None] = None
     tuning: ClassVar[TuningSpace | None] = IET_TUNING
 
@@ -86,7 +84,7 @@ class IET(NamedRuns, MASAC):
                 f"IET trains CTDE tasks with policy='CTDEPolicy' (per-agent soft-modular actors), got {policy!r}; "
                 "on a single-agent task use SERASAC, SAC or SUNRISE"
             )
-        # Named against IET's own keywords before MASAC takes its compile_update, which IET has not
+        # Named against IET's own keywords (latent_dim among them), not MASAC's
         check_keywords(type(self), kwargs, policy)
         self.latent_dim = check_int("latent_dim", latent_dim, 1)
         #: The latents' generator state when the model was saved (see :meth:`save` and :meth:`load`)

@@ -181,63 +181,6 @@ class HeterogeneousCritics(BaseModel):
         values = [q_net(q_input[selected]) for q_net, selected in zip(self.q_networks, rows, strict=True)]
         return th.zeros_like(q_input[:, :1]).index_copy(0, th.cat(rows), th.cat(values))
 
-    def relu_linear_layers(self) -> list[list[nn.Linear]] | None:
-        """
-        Each critic's linear layers, in order, when every critic is SB3's MLP of linear layers with a ReLU after each
-        hidden one (the default ``activation_fn``); None for any other network.
-        """
-        layers = []
-        for q_net in self.q_networks:
-            modules = list(q_net.children())
-            linear = [module for module in modules[0::2] if type(module) is nn.Linear]
-            activations = [module for module in modules[1::2] if type(module) is nn.ReLU]
-            if len(linear) + len(activations) != len(modules) or len(linear) != len(activations) + 1:
-                return None
-            layers.append(linear)
-        return layers
-
-    def q_values_and_hidden(
-        self, q_input: th.Tensor, layers: list[list[nn.Linear]]
-    ) -> tuple[th.Tensor, list[list[th.Tensor]]]:
-        """
-        All critics' values, shape ``(batch_size, n_critics)``, and each critic's hidden activations (the output of
-        each ReLU), for critics of :meth:`relu_linear_layers` (``layers``).
-
-        :param q_input: critic input from :meth:`q_input`, shape ``(batch_size, input_dim)``
-        """
-        values, hidden = [], []
-        for critic_layers in layers:
-            activations = [q_input]
-            for layer in critic_layers[:-1]:
-                activations.append(th.relu(layer(activations[-1])))
-            values.append(critic_layers[-1](activations[-1]))
-            hidden.append(activations[1:])
-        return th.cat(values, dim=1), hidden
-
-    def selected_action_gradients(
-        self, hidden: list[list[th.Tensor]], critic_index: th.Tensor, layers: list[list[nn.Linear]], action_dim: int
-    ) -> th.Tensor:
-        """
-        The gradient of one critic per sample with respect to the action, ``dQ_{index_j}(x_j) / da_j``, shape
-        ``(batch_size, action_dim)``, from the hidden activations of :meth:`q_values_and_hidden` (the action is the
-        last ``action_dim`` entries of the critic input). Each critic's backward pass runs only on the samples it was
-        selected for (:meth:`selected_rows`), as in :meth:`selected_q_values`, without running the critic forward again.
-
-        :param critic_index: which critic for each sample, shape ``(batch_size,)``
-        """
-        rows = self.selected_rows(critic_index)
-        gradients = []
-        for critic_layers, activations, selected in zip(layers, hidden, rows, strict=True):
-            gradient = critic_layers[-1].weight.expand(selected.shape[0], -1)
-            for depth in reversed(range(len(activations))):
-                # ReLU's derivative where it was active (as autograd's threshold_backward), then the layer's input
-                gradient = th.where(activations[depth][selected] > 0, gradient, 0.0)
-                weight = critic_layers[depth].weight
-                gradient = gradient @ (weight if depth > 0 else weight[:, -action_dim:])
-            gradients.append(gradient)
-        action_gradients = hidden[0][0].new_zeros(critic_index.shape[0], action_dim)
-        return action_gradients.index_copy(0, th.cat(rows), th.cat(gradients))
-
     def q1_forward(self, obs: PyTorchObs, actions: th.Tensor) -> th.Tensor:
         """The first critic's value only, without gradient to the features extractor (as SB3's TD3 uses)."""
         with th.no_grad():

@@ -1,8 +1,6 @@
 """SERASAC: Soft Actor-Critic with a Soft Ensemble Reliability Aggregation critic (docs/SPEC.md, section 1)."""
 
 import warnings
-from collections.abc import Callable
-from functools import partial
 from typing import Any, ClassVar
 
 import torch as th
@@ -16,7 +14,19 @@ from stable_baselines3.sac import SAC
 
 from sb3_sera.common.arguments import checks_keywords
 from sb3_sera.common.capabilities import Capabilities
-from sb3_sera.common.compiled import COMPILE_MODES, CompileMode, compile_model_step, learning_rates_tensor
+from sb3_sera.common.compiled import (
+    AdamPlan,
+    AdamState,
+    CompiledUpdate,
+    CompileMode,
+    StepOutput,
+    learning_rates_tensor,
+    masked_polyak,
+    masked_sac_update,
+    sac_logged,
+    sac_plans,
+    sac_quantities,
+)
 from sb3_sera.common.finite import check_finite, gradient_step_context, with_env_step_check
 from sb3_sera.common.hyperparameters import (
     base_arguments,
@@ -27,7 +37,6 @@ from sb3_sera.common.naming import NamedRuns
 from sb3_sera.common.off_policy import record_means, start_train, target_update_due
 from sb3_sera.common.tuning import TuningSpace
 from sb3_sera.ctde.policies import fill_agent_layout, make_env_for_policy
-from sb3_sera.sera import compiled_step
 from sb3_sera.sera.aggregation import (
     ACTOR_AGGREGATIONS,
     TARGET_AGGREGATIONS,
@@ -52,6 +61,7 @@ from sb3_sera.sera.update import (
     DIAGNOSTICS,
     CriticUpdate,
     actor_value,
+    actor_value_gathered,
     critic_update,
     diagnostics,
     entropy_target,
@@ -63,7 +73,7 @@ DEFAULT_LEARNING_RATE = 3e-4
 DEFAULT_CRITIC_LR_MAX = 5e-4
 
 
-class SERASAC(NamedRuns, Capabilities, SAC):
+class SERASAC(NamedRuns, Capabilities, CompiledUpdate, SAC):
     """
     Soft Ensemble Reliability Aggregation on top of Soft Actor-Critic.
 
@@ -125,14 +135,7 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         and for a features extractor owned by the critics; None: ``learning_rate``
     :param disagreement_coef: ``beta >= 0`` of the disagreement-adjusted entropy target
         ``H_eff = H_target - beta * U`` (0: SAC's temperature tuning)
-    :param compile_update: compile the whole gradient step (critic update, step-size statistics, entropy target and
-        coefficient, actor update, optimizer steps, target update) into one graph with ``torch.compile``
-        (``fullgraph=True``): the same results as the default path up to float rounding, and nothing read back from
-        the device inside the step. A non-finite value still stops training with a ``FloatingPointError`` naming it
-        (read once per ``train()`` call), and the step that met it and the steps after it change nothing (their
-        updates are masked). ``"reduce-overhead"`` also replays the step as a CUDA graph (``device="cuda"``). The
-        first gradient step pays the compilation (about a minute on CPU, where it needs a C++ compiler); the
-        optimizers must be Adam or AdamW (the default), and ``use_sde`` stays off
+    :param compile_update: compile the gradient step whole (:class:`.CompiledUpdate`; ``"reduce-overhead"``: CUDA graphs)
     :param tensorboard_log: the log location for tensorboard (if None, no logging)
     :param policy_kwargs: additional arguments to be passed to the policy on creation, e.g. ``n_critics`` and
         ``critic_archs`` (see :class:`~sb3_sera.sera.policies.SERAPolicy`)
@@ -149,6 +152,11 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         "CTDEPolicy": SERACTDEPolicy,
     }
     tuning: ClassVar[TuningSpace | None] = SERASAC_TUNING
+    compiles_update: ClassVar[bool] = True
+    soft_q_critics: ClassVar[bool] = True
+    own_td_targets: ClassVar[bool] = True
+    per_critic_rates: ClassVar[bool] = True
+    compiled_quantities: ClassVar[tuple[str, ...]] = sac_quantities(("critic step size",))
     policy: SERAPolicy
     critic: HeterogeneousCritics  # type: ignore[assignment]
     critic_target: HeterogeneousCritics  # type: ignore[assignment]
@@ -215,7 +223,7 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         self.estimation_variance_ema = estimation_variance_ema
         self.critic_learning_rate = critic_learning_rate
         self.disagreement_coef = disagreement_coef
-        self.compile_update = compile_update
+        self._take_compile_update(compile_update)
         # SERA's own ranges first (an ensemble needs two critics, where SB3's rule allows one), then SB3's, numbers as
         # Python int and float (numpy scalars and integral floats such as 1e4 accepted, as SB3 accepts them)
         self._check_sera_hyperparameters(policy_kwargs)
@@ -245,7 +253,6 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         check_choice("sera_temperature_mode", self.sera_temperature_mode, TEMPERATURE_MODES)
         check_choice("sera_include_median", self.sera_include_median, (True, False))
         check_choice("adaptive_critic_lr", self.adaptive_critic_lr, (True, False))
-        check_choice("compile_update", self.compile_update, COMPILE_MODES)
         self.sera_alpha = check_range("sera_alpha", self.sera_alpha, 0.0, 1.0)
         self.sera_temperature = check_range("sera_temperature", self.sera_temperature, 0.0, None, low_inclusive=False)
         self.kappa_min = check_range("kappa_min", self.kappa_min, 0.0, 1.0)
@@ -286,14 +293,7 @@ class SERASAC(NamedRuns, Capabilities, SAC):
         self._actor_parameters: list[th.Tensor] = list(self.actor.parameters())
         self._critic_parameters: list[th.Tensor] = list(self.critic.parameters())
         self._critic_target_parameters: list[th.Tensor] = list(self.critic_target.parameters())
-        self._compiled_step: Callable[..., compiled_step.CompiledStepOutput] | None = None
-        if self.compile_update:
-            self._adam_plans, self._compiled_step = compile_model_step(
-                self,
-                partial(compiled_step.gradient_step, self),
-                self.compile_update,
-                lambda: [param for group in self.critic.parameter_groups() for param in group["params"]],
-            )
+        self._setup_compiled_update()
 
     def _update_critic_learning_rates(self, rates: list[float] | None) -> list[float]:
         """
@@ -350,7 +350,7 @@ class SERASAC(NamedRuns, Capabilities, SAC):
             self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
             return
         if self._compiled_step is not None:
-            compiled_step.train_compiled(self, gradient_steps, batch_size)
+            self._train_compiled(gradient_steps, batch_size)
             return
         logged: dict[str, list[th.Tensor]] = {"ent_coef": [], "actor_loss": [], "critic_loss": []}
         for gradient_step in range(gradient_steps):
@@ -391,16 +391,88 @@ class SERASAC(NamedRuns, Capabilities, SAC):
             self.logger.record(f"train/critic_lr_{index}", rate)
 
     def _step_learning_rates(self) -> th.Tensor:
-        """The compiled step's ``learning_rates``: the actor's, the entropy coefficient's (0 when fixed), the critics' cap."""
+        """The compiled step's ``learning_rates``: the actor's, the critics' cap, the entropy coefficient's (0 when fixed)."""
         entropy_rate = self.ent_coef_optimizer.param_groups[0]["lr"] if self.ent_coef_optimizer is not None else 0.0
         return learning_rates_tensor(
             [
                 self.actor.optimizer.param_groups[0]["lr"],
-                entropy_rate,
                 self.critic_lr_schedule(self._current_progress_remaining),
+                entropy_rate,
             ],
             self.device,
         )
+
+    def _optimizer_plans(self) -> list[AdamPlan]:
+        return sac_plans(
+            self.actor,
+            self.critic,
+            self.ent_coef_optimizer,
+            self.log_ent_coef,
+            lambda: [param for group in self.critic.parameter_groups() for param in group["params"]],
+        )
+
+    def _gradient_step_graph(
+        self,
+        replay_data: ReplayBufferSamples,
+        *,
+        learning_rates: th.Tensor,
+        due: th.Tensor,
+        healthy: th.Tensor,
+        states: list[list[AdamState]],
+    ) -> StepOutput:
+        """
+        One gradient step as one graph (:meth:`.CompiledUpdate._gradient_step_graph`): the functions of
+        :mod:`sb3_sera.sera.update` in :meth:`train`'s order, the step size committed where the step's values were
+        finite. The actor's value is :func:`~sb3_sera.sera.update.actor_value_gathered` (static shapes, which CUDA
+        graphs need). Its ``extra``: each critic's rate after the step, then its diagnostics
+        (:func:`~sb3_sera.sera.update.diagnostics`).
+        """
+        actions_pi, log_prob = self.actor.action_log_prob(replay_data.observations)
+        log_prob = log_prob.reshape(-1, 1)
+        ent_coef = self._entropy_coefficient()
+        critic = self._critic_update(replay_data, ent_coef)
+        target_entropy, ent_coef_loss = self._entropy_target(critic.current_q_values, log_prob)
+        scheduled = learning_rates[1]
+        n_critics = self.critic.n_critics
+        critic_rates = critic.step_size.learning_rates if self.adaptive_critic_lr else scheduled.expand(n_critics)
+
+        def group_rates(apply: th.Tensor) -> list[th.Tensor]:
+            self.step_size.commit(critic.step_size, apply)
+            groups = self.critic.parameter_groups()
+            return [scheduled if group["critic_index"] is None else critic_rates[group["critic_index"]] for group in groups]
+
+        def actor_loss() -> th.Tensor:
+            q_value = actor_value_gathered(self.critic, replay_data.observations, actions_pi, self.actor_aggregation)
+            return (ent_coef * log_prob - q_value).mean()
+
+        update = masked_sac_update(
+            self._adam_plans,
+            states,
+            critic=self.critic,
+            critic_target=self.critic_target,
+            tau=self.tau,
+            ent_coef=ent_coef,
+            ent_coef_loss=ent_coef_loss,
+            target_q_values=critic.target_q_values,
+            critic_loss=critic.critic_loss,
+            actor_loss=actor_loss,
+            learning_rates=learning_rates,
+            target_update=due[0],
+            healthy=healthy,
+            checked=[th.isfinite(critic.step_size.learning_rates).all() if self.adaptive_critic_lr else healthy],
+            critic_rates=group_rates,
+        )
+        masked_polyak(self.batch_norm_stats_target, self.batch_norm_stats, 1.0, update.applied & due[0])
+        logged = sac_logged(ent_coef, critic.critic_loss, update.actor_loss, ent_coef_loss)
+        extra = th.cat([critic_rates, diagnostics(critic, target_entropy)])
+        return StepOutput(healthy=update.applied, finite=update.finite, logged=logged, extra=extra)
+
+    def _after_compiled_steps(self, gradient_steps: int, extra: list[float]) -> None:
+        n_critics = self.critic.n_critics
+        critic_rates, step_diagnostics = extra[:n_critics], extra[n_critics:]
+        if self.adaptive_critic_lr:
+            self._update_critic_learning_rates(critic_rates)
+        self._end_train(gradient_steps, step_diagnostics, critic_rates)
 
     def _start_train(self) -> list[float]:
         """Training mode, the actor's and entropy coefficient's schedules, the critics' rates; returns the latter."""
@@ -517,8 +589,6 @@ class SERASAC(NamedRuns, Capabilities, SAC):
             "_actor_parameters",
             "_critic_parameters",
             "_critic_target_parameters",
-            "_compiled_step",
-            "_adam_plans",
         ]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:

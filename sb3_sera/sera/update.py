@@ -1,7 +1,7 @@
 """
 SERASAC's gradient step (the paper's Algorithm 2) as tensor functions of the networks and settings each needs: the
 critic update, the entropy target, the actor's value of its actions and the diagnostics. The eager ``train()``
-(:class:`~sb3_sera.sera.sera.SERASAC`) and the compiled step (:mod:`sb3_sera.sera.compiled_step`) call the same
+(:class:`~sb3_sera.sera.sera.SERASAC`) and the compiled step (``SERASAC._gradient_step_graph``) call the same
 functions in the same order; only how the gradients are applied differs (torch's optimizers, or a masked Adam inside
 one graph).
 """
@@ -146,37 +146,11 @@ def actor_value(
     return critic.selected_q_values(q_input, index)
 
 
-def actor_value_linearized(
-    critic: HeterogeneousCritics, observations: PyTorchObs, actions_pi: th.Tensor, aggregation: ActorAggregation
-) -> th.Tensor:
-    """
-    :func:`actor_value` without running the selected critic forward a second time (the compiled step's on a CPU):
-    the pass that finds each sample's selected critic keeps the critics' hidden activations, and the selected
-    critic's backward pass runs from them (:meth:`~sb3_sera.sera.policies.HeterogeneousCritics.selected_action_gradients`),
-    on its samples alone. The value is the selected critic's, and its gradient with respect to the actor's actions
-    ``dQ/da``, through ``Q + (a - stop_gradient(a)) . dQ/da``, whose second term is zero: the actor's gradient is
-    :func:`actor_value`'s (equal up to float rounding), at about 15% less arithmetic in this pass for the Table 4
-    critics (3.5% of a gradient step). Critics other than MLPs with ReLUs
-    (:meth:`~sb3_sera.sera.policies.HeterogeneousCritics.relu_linear_layers`) and the ``"mean"`` aggregation take
-    :func:`actor_value`.
-    """
-    layers = critic.relu_linear_layers()
-    if layers is None or aggregation == "mean":
-        return actor_value(critic, observations, actions_pi, aggregation)
-    with th.no_grad():
-        q_values, hidden = critic.q_values_and_hidden(critic.q_input(observations, actions_pi), layers)
-        index = selected_critic(q_values, aggregation)
-        assert index is not None
-        action_gradients = critic.selected_action_gradients(hidden, index, layers, actions_pi.shape[1])
-        value = q_values.gather(1, index.unsqueeze(1))
-    return value + ((actions_pi - actions_pi.detach()) * action_gradients).sum(dim=1, keepdim=True)
-
-
 def actor_value_gathered(
     critic: HeterogeneousCritics, observations: PyTorchObs, actions_pi: th.Tensor, aggregation: ActorAggregation
 ) -> th.Tensor:
     """
-    :func:`actor_value` with static shapes (the compiled step's on a GPU, where finding each critic's samples would
+    :func:`actor_value` with static shapes (the compiled step's: on a GPU, finding each critic's samples would
     synchronise with the device and keep CUDA graphs from replaying the step): every critic runs with a graph, the
     selected one's value is gathered.
     """

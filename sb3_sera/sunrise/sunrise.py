@@ -18,18 +18,17 @@ from stable_baselines3.common.utils import polyak_update
 from sb3_sera.common.arguments import check_gymnasium_env, checks_keywords
 from sb3_sera.common.capabilities import Capabilities
 from sb3_sera.common.compiled import (
-    COMPILE_MODES,
+    AdamPlan,
+    AdamState,
+    CompiledUpdate,
     CompileMode,
-    compile_model_step,
+    StepOutput,
     masked_sac_update,
-    plans_learning_rates,
-    read_steps,
-    run_steps,
+    sac_plans,
 )
 from sb3_sera.common.finite import check_finite, gradient_step_context, with_env_step_check
 from sb3_sera.common.hyperparameters import (
     base_arguments,
-    check_choice,
     check_ent_coef,
     check_int,
     check_range,
@@ -49,17 +48,6 @@ from sb3_sera.sunrise.policies import (
 )
 from sb3_sera.sunrise.tuning import SUNRISE_TUNING
 
-#: What a compiled gradient step checks, in the order in which a cause precedes its consequences
-COMPILED_QUANTITIES = (
-    "entropy coefficient",
-    "TD target",
-    "critic loss",
-    "entropy coefficient loss",
-    "critic gradients",
-    "entropy coefficient gradient",
-    "actor loss",
-    "actor gradients",
-)
 #: What a gradient step logs, in this order (``ent_coef_loss`` when the coefficients are learned)
 LOGGED = ("ent_coef", "critic_loss", "actor_loss", "backup_weight", "ensemble_std", "ent_coef_loss")
 
@@ -83,18 +71,7 @@ class SUNRISELosses(NamedTuple):
     masks: th.Tensor
 
 
-class CompiledStepOutput(NamedTuple):
-    """What one compiled gradient step gives back (:class:`~sb3_sera.common.compiled.StepOutput`)."""
-
-    #: Whether this step and every earlier one of the ``train()`` call had only finite values (their updates applied)
-    healthy: th.Tensor
-    #: One flag per quantity of :data:`COMPILED_QUANTITIES`: whether it was finite
-    finite: th.Tensor
-    #: The step's values of :data:`LOGGED`
-    logged: th.Tensor
-
-
-class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
+class SUNRISE(NamedRuns, Capabilities, CompiledUpdate, OffPolicyAlgorithm):
     """
     SUNRISE (Lee, Laskin, Srinivas and Abbeel, ICML 2021): ``n_members`` independent SAC agents, each with its own
     actor, twin critics, target critics and entropy coefficient, trained on its own bootstrap mask of the replayed
@@ -156,6 +133,7 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
 
     multi_agent: ClassVar[bool] = False
     tuning: ClassVar[TuningSpace | None] = SUNRISE_TUNING
+    compiles_update: ClassVar[bool] = True
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpPolicy": MlpPolicy}
     policy: SUNRISEPolicy
@@ -213,8 +191,7 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
         self.bootstrap_prob = check_range("bootstrap_prob", bootstrap_prob, 0.0, 1.0, low_inclusive=False)
         self.backup_temperature = check_range("backup_temperature", backup_temperature, 0.0, None)
         self.ucb_lambda = check_range("ucb_lambda", ucb_lambda, 0.0, None)
-        check_choice("compile_update", compile_update, COMPILE_MODES)
-        self.compile_update = compile_update
+        self._take_compile_update(compile_update)
         for argument, kwargs, names in (
             ("policy_kwargs", policy_kwargs, ("n_members", "ucb_lambda")),
             ("replay_buffer_kwargs", replay_buffer_kwargs, ("n_members", "bootstrap_prob")),
@@ -265,11 +242,7 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
             self.ent_coef_optimizer = th.optim.Adam([self.log_ent_coef], lr=self.lr_schedule(1))
         else:
             self.ent_coef_tensor = th.full((self.n_members,), float(self.ent_coef), device=self.device)
-        self._compiled_step: Any = None
-        if self.compile_update:
-            self._adam_plans, self._compiled_step = compile_model_step(
-                self, self._gradient_step_graph, self.compile_update, lambda: list(self.critic.parameters())
-            )
+        self._setup_compiled_update()
 
     def _setup_learn(
         self,
@@ -425,60 +398,43 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
         self.actor.optimizer.step()
         return self._logged(losses, actor_loss)
 
-    def _step_learning_rates(self) -> th.Tensor:
-        """The compiled step's ``learning_rates``: each Adam plan's current rate, in the plans' order."""
-        return plans_learning_rates(self._adam_plans, self.device)
+    def _optimizer_plans(self) -> list[AdamPlan]:
+        return sac_plans(self.actor, self.critic, self.ent_coef_optimizer, self.log_ent_coef)
 
-    def _train_compiled(self, gradient_steps: int, batch_size: int) -> None:
-        """
-        :meth:`train`'s steps through the compiled :meth:`_gradient_step_graph`, read from the device once, after the
-        last step. A non-finite value raises ``FloatingPointError`` naming the first one; its step and those after it
-        changed nothing.
-        """
-        outputs: list[CompiledStepOutput] = run_steps(
-            self, partial(self._sample, batch_size), self._step_learning_rates(), gradient_steps
-        )
-        logged, _ = read_steps(outputs, COMPILED_QUANTITIES, partial(gradient_step_context, self))
-        for name, value in zip(LOGGED, logged, strict=False):
-            self.logger.record(f"train/{name}", value)
+    def _sample_batch(self, batch_size: int) -> SUNRISEReplayBufferSamples:
+        return self._sample(batch_size)
+
+    def _logged_names(self) -> list[str]:
+        return list(LOGGED[: 6 if self.ent_coef_optimizer is not None else 5])
 
     def _gradient_step_graph(
         self,
         replay_data: SUNRISEReplayBufferSamples,
         *,
         learning_rates: th.Tensor,
-        target_update: th.Tensor,
+        due: th.Tensor,
         healthy: th.Tensor,
-        states: list[list[tuple[th.Tensor, th.Tensor, th.Tensor]]],
-    ) -> CompiledStepOutput:
-        """
-        :meth:`_gradient_step` and the target update as one graph (``compile_update``): gradients from
-        ``torch.autograd.grad``, Adam steps and the target update masked by ``healthy`` and by whether this step's
-        values were finite, nothing read back.
-
-        :param learning_rates: each optimizer's rate, in ``_adam_plans`` order (actor, critics, entropy coefficients)
-        :param target_update: whether the target critics are updated after this step, a boolean scalar tensor
-        :param healthy: whether every earlier step of the ``train()`` call had only finite values
-        :param states: each optimizer's Adam state (:meth:`AdamPlan.state`), in ``_adam_plans`` order
-        """
+        states: list[list[AdamState]],
+    ) -> StepOutput:
+        """:meth:`_gradient_step` and the target update as one graph (:meth:`.CompiledUpdate._gradient_step_graph`)."""
         losses = self._losses(replay_data)
         update = masked_sac_update(
-            self,
+            self._adam_plans,
+            states,
+            critic=self.critic,
+            critic_target=self.critic_target,
+            tau=self.tau,
             ent_coef=losses.ent_coef,
             ent_coef_loss=losses.ent_coef_loss,
             target_q_values=losses.target_q_values,
             critic_loss=losses.critic_loss,
             actor_loss=partial(self._actor_loss, replay_data.observations, losses),
             learning_rates=learning_rates,
-            target_update=target_update,
+            target_update=due[0],
             healthy=healthy,
-            states=states,
         )
-        return CompiledStepOutput(
-            healthy=update.applied,
-            finite=update.finite,
-            logged=th.stack(list(self._logged(losses, update.actor_loss).values())),
-        )
+        logged = th.stack(list(self._logged(losses, update.actor_loss).values()))
+        return StepOutput(healthy=update.applied, finite=update.finite, logged=logged, extra=healthy.new_zeros(0))
 
     def _check_finite(self, gradient_step: int, quantities: dict[str, th.Tensor]) -> None:
         """
@@ -500,8 +456,6 @@ class SUNRISE(NamedRuns, Capabilities, OffPolicyAlgorithm):
             "actor",
             "critic",
             "critic_target",
-            "_compiled_step",
-            "_adam_plans",
         ]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:

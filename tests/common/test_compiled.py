@@ -10,13 +10,7 @@ from torch.fx.experimental.proxy_tensor import make_fx
 
 from sb3_sera.common import graph_passes
 from sb3_sera.common.compiled import AdamPlan, all_finite, masked_adam, masked_polyak, read_steps, step_options
-from sb3_sera.common.graph_passes import (
-    BiasIntoPointwise,
-    GraphPasses,
-    KeepRandomOrder,
-    TransposeNarrowProducts,
-    transposed_product_is_faster,
-)
+from sb3_sera.common.graph_passes import KeepRandomOrder
 
 
 @pytest.mark.parametrize(
@@ -76,93 +70,6 @@ def test_optimizers_a_masked_adam_cannot_follow_are_refused(optimizer, message):
     params = [th.nn.Parameter(th.zeros(1)), th.nn.Parameter(th.ones(2))]
     with pytest.raises(ValueError, match=message):
         AdamPlan(optimizer(params), "test", lambda: params)
-
-
-def test_bias_into_pointwise_splits_only_the_linear_layers_whose_uses_are_pointwise():
-    def layers(x, w1, b1, w2, b2):
-        hidden = th.relu(th.addmm(b1, x, w1))  # pointwise use: split
-        head = th.addmm(b2, hidden, w2)  # used by cat: kept
-        return th.cat([head, head], dim=1) * 2
-
-    th.manual_seed(0)
-    inputs = (th.randn(8, 3), th.randn(3, 5), th.randn(5), th.randn(5, 1), th.randn(1))
-    graph_module = make_fx(layers, tracing_mode="fake")(*inputs)
-    targets = [node.target for node in graph_module.graph.nodes if node.op == "call_function"]
-    assert targets.count(th.ops.aten.addmm.default) == 2
-    BiasIntoPointwise()(graph_module.graph)
-    graph_module.recompile()
-    targets = [node.target for node in graph_module.graph.nodes if node.op == "call_function"]
-    assert targets.count(th.ops.aten.addmm.default) == 1
-    assert targets.count(th.ops.aten.mm.default) == 1
-    assert targets.count(th.ops.aten.add.Tensor) == 1
-    th.testing.assert_close(graph_module(*inputs), layers(*inputs))
-    # A uuid, stable across instances: without one Inductor would not cache a graph compiled with the pass
-    uuid = BiasIntoPointwise().uuid()
-    assert isinstance(uuid, bytes) and uuid and uuid == BiasIntoPointwise().uuid()
-
-
-def test_transpose_narrow_products_rewrites_only_narrow_outputs_the_timing_favours():
-    def gradients(grad_out, inputs, wide):
-        # A first layer's weight gradient (5 columns), a product with a wide output (40 columns), one used by the output
-        narrow = grad_out.T @ inputs
-        return (narrow * 2, grad_out.T @ wide, (inputs.T @ grad_out).sum())
-
-    th.manual_seed(0)
-    inputs = (th.randn(64, 16), th.randn(64, 5), th.randn(64, 40))
-    asked = []
-
-    def faster(left: th.Tensor, right: th.Tensor) -> bool:
-        asked.append((tuple(left.shape), tuple(right.shape)))
-        return True
-
-    graph_module = make_fx(gradients, tracing_mode="fake")(*inputs)
-    TransposeNarrowProducts(faster)(graph_module.graph)
-    graph_module.recompile()
-    # Only the narrow product was timed and rewritten: 16 x 5 from (16, 64) @ (64, 5)
-    assert asked == [((16, 64), (64, 5))]
-    products = [node for node in graph_module.graph.nodes if node.target is th.ops.aten.mm.default]
-    assert [tuple(node.meta["val"].shape) for node in products] == [(5, 16), (16, 40), (5, 16)]
-    for got, expected in zip(graph_module(*inputs), gradients(*inputs), strict=True):
-        th.testing.assert_close(got, expected)
-    # Where the timing finds the transposed order slower, nothing changes
-    graph_module = make_fx(gradients, tracing_mode="fake")(*inputs)
-    before = [node.target for node in graph_module.graph.nodes]
-    TransposeNarrowProducts(lambda left, right: False)(graph_module.graph)
-    assert [node.target for node in graph_module.graph.nodes] == before
-
-
-def test_the_timing_answers_once_per_layout_and_the_passes_have_a_uuid(monkeypatch):
-    left, right = th.randn(32, 64).T, th.randn(32, 4)
-    first = transposed_product_is_faster(left, right)
-    assert isinstance(first, bool)
-    # The same sizes, strides and dtype again: the answer kept, nothing timed
-    monkeypatch.setattr("time.perf_counter", lambda: pytest.fail("timed again"))
-    assert transposed_product_is_faster(th.zeros(32, 64).T, th.zeros(32, 4)) is first
-    passes = GraphPasses(BiasIntoPointwise(), TransposeNarrowProducts())
-    assert passes.uuid() == BiasIntoPointwise().uuid() + TransposeNarrowProducts().uuid() and passes.uuid()
-
-
-@pytest.mark.parametrize(("transposed_seconds", "expected"), [(0.79, True), (0.81, False)])
-def test_the_timing_takes_the_transposed_order_only_when_the_product_saves_a_fifth(monkeypatch, transposed_seconds, expected):
-    # A fake clock that each product advances: 1 s for left @ right, transposed_seconds for the transposed order.
-    # The views are made before the clock runs: a view's cost is not the library's
-    clock = [0.0]
-    left, right = th.randn(32, 64).T, th.randn(32, 4)
-
-    def product(first: th.Tensor, second: th.Tensor) -> th.Tensor:
-        clock[0] += 1.0 if first.shape == left.shape else transposed_seconds
-        return th.empty(first.shape[0], second.shape[1])
-
-    def view(tensor: th.Tensor) -> th.Tensor:
-        clock[0] += 1.0
-        return tensor.permute(1, 0)
-
-    monkeypatch.setattr(graph_passes, "_transposed_is_faster", {})
-    monkeypatch.setattr(th, "mm", product)
-    monkeypatch.setattr(th.Tensor, "T", property(view))
-    monkeypatch.setattr("time.perf_counter", lambda: clock[0])
-    assert graph_passes.TRANSPOSE_MIN_SAVING == 0.2
-    assert transposed_product_is_faster(left, right) is expected
 
 
 class _Output(NamedTuple):

@@ -4,7 +4,6 @@ place has a fixed address (Inductor's own check finds no input that would make i
 graph is reported in a warning.
 """
 
-from functools import partial
 from typing import Any
 
 import pytest
@@ -12,9 +11,8 @@ import torch as th
 from torch._dynamo.utils import counters
 
 from sb3_sera import SERASAC, SUNRISE
-from sb3_sera.common import compiled
 from sb3_sera.common.compiled import CUDAGraphSkipWarning, cuda_graph_blockers, warn_if_cuda_graphs_skipped
-from sb3_sera.sera.compiled_step import gradient_step
+from sb3_sera.common.compiled.skips import watching_cuda_graphs
 from tests.helpers import assert_same_state, snapshot
 
 SMALL: dict[str, Any] = dict(seed=0, compile_update=True, learning_starts=64, batch_size=16, buffer_size=500)
@@ -23,7 +21,7 @@ SMALL: dict[str, Any] = dict(seed=0, compile_update=True, learning_starts=64, ba
 def _serasac(policy: str, env: str) -> tuple[Any, Any]:
     kwargs = dict(n_critics=2, critic_archs=[[8], [8, 8]], net_arch=[8])
     model = SERASAC(policy, env, policy_kwargs=kwargs, **SMALL)
-    return model, partial(gradient_step, model)
+    return model, model._gradient_step_graph
 
 
 def _sunrise() -> tuple[Any, Any]:
@@ -85,8 +83,8 @@ def test_the_step_is_watched_for_skips_and_inductors_reason_is_kept(recwarn):
     skips = counters["inductor"]["cudagraph_skips"]
     try:
         with pytest.warns(CUDAGraphSkipWarning, match=r"\(skipping cudagraphs due to mutated inputs \(1 instances\)\)"):
-            assert compiled._watching_cuda_graphs(skipping_step, 1, {}) == 2
-        assert compiled._watching_cuda_graphs(lambda batch, **_: batch, 3, {}) == 3
+            assert watching_cuda_graphs(skipping_step, 1, {}) == 2
+        assert watching_cuda_graphs(lambda batch, **_: batch, 3, {}) == 3
         assert not [w for w in recwarn.list if issubclass(w.category, CUDAGraphSkipWarning)]
     finally:
         counters["inductor"]["cudagraph_skips"] = skips

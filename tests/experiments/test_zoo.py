@@ -259,6 +259,17 @@ def test_the_zoo_reads_the_capabilities_the_classes_declare():
     assert set(SINGLE_AGENT_ALGOS) == {name for name, algo in ZOO_ALGOS.items() if not capabilities(algo)["multi_agent"]}
     assert set(MULTI_AGENT_ALGOS) == {"iet"} and set(SINGLE_AGENT_ALGOS) == {"sunrise", "ace"}
     assert not capabilities(ZOO_ALGOS["mappo"])["off_policy"] and capabilities(ZOO_ALGOS["masac"])["tunes_like"] == "sac"
+    # What the evaluations and compile_update read, declared where it holds (SB3's own SAC: the defaults, soft critics)
+    declared = {name: capabilities(algo) for name, algo in ZOO_ALGOS.items()}
+    compiled = {name for name, values in declared.items() if values["compiles_update"]}
+    assert compiled == {"serasac", "sunrise", "masac", "iet", "matd3", "maddpg"}
+    assert {name for name, values in declared.items() if values["soft_q_critics"]} == {"serasac", "masac", "iet"}
+    assert {name for name, values in declared.items() if values["own_td_targets"] or values["per_critic_rates"]} == {"serasac"}
+    assert {name for name, values in declared.items() if values["acts_on_latents"]} == {"iet"}
+    from stable_baselines3 import SAC, TD3
+
+    assert capabilities(SAC)["soft_q_critics"] and not capabilities(TD3)["soft_q_critics"]
+    assert not capabilities(SAC)["compiles_update"]
 
 
 @pytest.mark.parametrize("algo", sorted(ZOO_ALGOS))

@@ -297,10 +297,10 @@ def test_signature_progress_bar_and_tensorboard(tmp_path):
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     # rl-zoo3 files and bench grids are checked against it: SAC's hyperparameters and latent_dim
-    assert set(inspect.signature(IET).parameters) == set(inspect.signature(SAC).parameters) | {"latent_dim"}
-    # MASAC's compile_update is not IET's: named as any unknown keyword
-    with pytest.raises(TypeError, match="IET got an unexpected keyword argument 'compile_update'"):
-        IET("CTDEPolicy", CTDE_TASK, compile_update=True)
+    assert set(inspect.signature(IET).parameters) == set(inspect.signature(SAC).parameters) | {"latent_dim", "compile_update"}
+    # An unknown keyword is named against IET's own
+    with pytest.raises(TypeError, match="IET got an unexpected keyword argument 'latent_size'"):
+        IET("CTDEPolicy", CTDE_TASK, latent_size=3)
     model = IET("CTDEPolicy", CTDE_TASK, seed=0, tensorboard_log=str(tmp_path), **SMALL_CTDE)
     model.learn(100, log_interval=1, progress_bar=True)
     events = EventAccumulator(str(tmp_path / "IET_1"))

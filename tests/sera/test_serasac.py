@@ -17,7 +17,7 @@ from torch._dynamo.utils import counters
 from sb3_sera import SERASAC
 from sb3_sera.common.compiled import compile_step
 from sb3_sera.sera.policies import CRITIC_ARCHS, HeterogeneousCritics
-from sb3_sera.sera.update import actor_value, actor_value_linearized
+from sb3_sera.sera.update import actor_value, actor_value_gathered
 from tests.helpers import ENV_ID, SMALL, assert_same_state, serasac_as_sac, snapshot
 
 
@@ -88,7 +88,7 @@ def test_the_selected_critic_runs_on_its_samples_alone_eagerly_and_compiled():
     assert counters["stats"]["unique_graphs"] == graphs
 
 
-def ensemble(activation_fn: type[th.nn.Module] = th.nn.ReLU) -> HeterogeneousCritics:
+def ensemble() -> HeterogeneousCritics:
     """Three critics on 5 observations and 3 actions (the action is the last 3 columns of their input)."""
     observation_space = spaces.Box(-1, 1, (5,))
     return HeterogeneousCritics(
@@ -97,56 +97,27 @@ def ensemble(activation_fn: type[th.nn.Module] = th.nn.ReLU) -> HeterogeneousCri
         critic_archs=[[16, 8], [8], [4, 4, 4]],
         features_extractor=FlattenExtractor(observation_space),
         features_dim=5,
-        activation_fn=activation_fn,
     )
 
 
-def test_the_selected_critics_action_gradient_by_hand():
-    # One critic of one hidden layer: Q(x) = w2 . relu(W1 x + b1) + b2, so dQ/da = W1[:, actions]^T (w2 * [h > 0])
-    critic = ensemble()
-    layers = critic.relu_linear_layers()
-    assert layers is not None and [len(linear) for linear in layers] == [3, 2, 4]
-    first, last = layers[1]
-    with th.no_grad():
-        first.weight.copy_(th.arange(64.0).reshape(8, 8) / 64 - 0.5)
-        first.bias.copy_(th.tensor([0.1, -0.1, 0.2, -0.2, 0.3, -0.3, 0.4, -0.4]))
-        last.weight.copy_(th.tensor([[1.0, -2.0, 3.0, -4.0, 5.0, -6.0, 7.0, -8.0]]))
-    q_input = th.tensor([[0.5, -0.5, 0.25, 0.0, 1.0, 0.2, -0.3, 0.4], [-1.0, 0.5, 0.0, 0.75, -0.5, 0.1, 0.6, -0.9]])
-    hidden_pre = q_input @ first.weight.T + first.bias
-    expected = (last.weight * (hidden_pre > 0)) @ first.weight[:, 5:]
-    values, hidden = critic.q_values_and_hidden(q_input, layers)
-    th.testing.assert_close(values[:, 1:2], th.relu(hidden_pre) @ last.weight.T + last.bias)
-    gradients = critic.selected_action_gradients(hidden, th.tensor([1, 1]), layers, action_dim=3)
-    th.testing.assert_close(gradients, expected)
-
-
 @pytest.mark.parametrize("aggregation", ["median", "min", "mean"])
-def test_the_linearized_actor_value_has_the_actor_values_value_and_gradient(aggregation):
-    # The compiled step's actor value on a CPU: no second forward pass of the selected critic, the same value and
-    # the same gradient to the actions as actor_value, eagerly and compiled
+def test_the_gathered_actor_value_has_the_actor_values_value_and_gradient(aggregation):
+    # The compiled step's actor value: every critic run, the selected one's value gathered (static shapes), the same
+    # value and the same gradient to the actions as actor_value (each critic on its own samples), eagerly and compiled
     th.manual_seed(0)
     critic = ensemble()
     observations, actions = th.randn(40, 5), th.rand(40, 3, requires_grad=True)
     reference = actor_value(critic, observations, actions, aggregation)
     (reference_grad,) = th.autograd.grad(reference.sum(), actions)
 
-    def linearized(obs: th.Tensor, acts: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
-        value = actor_value_linearized(critic, obs, acts, aggregation)
+    def gathered(obs: th.Tensor, acts: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+        value = actor_value_gathered(critic, obs, acts, aggregation)
         return value.detach(), th.autograd.grad(value.sum(), acts)[0]
 
-    for run in (linearized, compile_step(linearized, True)):
+    for run in (gathered, compile_step(gathered, True)):
         value, grad = run(observations, actions)
         th.testing.assert_close(value, reference.detach())
         th.testing.assert_close(grad, reference_grad)
-
-
-def test_the_linearized_actor_value_leaves_other_activations_to_autograd():
-    critic = ensemble(th.nn.Tanh)
-    assert critic.relu_linear_layers() is None
-    observations, actions = th.randn(10, 5), th.rand(10, 3)
-    assert th.equal(
-        actor_value_linearized(critic, observations, actions, "median"), actor_value(critic, observations, actions, "median")
-    )
 
 
 class CountedTrain(th.nn.Module):

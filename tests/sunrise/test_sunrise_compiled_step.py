@@ -2,16 +2,14 @@
 
 from typing import Any
 
-import pytest
 from stable_baselines3.common.env_util import make_vec_env
-from stable_baselines3.common.utils import set_random_seed
 
 from sb3_sera import SUNRISE
 from tests.helpers import (
-    assert_close_state,
+    assert_compiled_equals_eager,
+    assert_gpu_trained_model_loads_on_the_cpu,
     assert_non_finite_stops_the_step,
     assert_schedule_does_not_recompile,
-    snapshot,
 )
 
 SETTINGS: dict[str, Any] = dict(
@@ -27,18 +25,7 @@ def build(compile_update: Any, **kwargs: Any) -> SUNRISE:
 
 
 def test_the_compiled_step_equals_the_eager_one_and_saves(tmp_path):
-    models = [build(False), build(True)]
-    logged = []
-    for model in models:
-        set_random_seed(1)
-        model.train(gradient_steps=4, batch_size=SETTINGS["batch_size"])
-        logged.append({key: value for key, value in model.logger.name_to_value.items() if key.startswith("train/")})
-    eager, compiled = models
-    assert compiled._compiled_step is not None
-    assert_close_state(snapshot(eager, optimizers=True), snapshot(compiled, optimizers=True))
-    assert logged[0].keys() == logged[1].keys() and "train/ensemble_std" in logged[1]
-    for key, value in logged[0].items():
-        assert logged[1][key] == pytest.approx(value, rel=1e-4, abs=1e-6), key
+    _, compiled, _ = assert_compiled_equals_eager(build, SETTINGS["batch_size"], logs=("train/ensemble_std",))
     # Saved and loaded, it compiles again and its optimizers carry on
     compiled.save(tmp_path / "model")
     loaded = SUNRISE.load(tmp_path / "model", env=make_vec_env("Pendulum-v1"))
@@ -47,15 +34,11 @@ def test_the_compiled_step_equals_the_eager_one_and_saves(tmp_path):
     steps = compiled.actor.optimizer.state_dict()["state"][0]["step"]
     loaded.learn(2, reset_num_timesteps=False)
     assert loaded.actor.optimizer.state_dict()["state"][0]["step"] == steps + 2
+    assert_gpu_trained_model_loads_on_the_cpu(compiled, tmp_path / "gpu_model", make_vec_env("Pendulum-v1"))
 
 
 def test_a_non_finite_value_stops_the_compiled_step_and_changes_nothing():
     assert_non_finite_stops_the_step(build(True), SETTINGS["batch_size"])
-
-
-def test_reduce_overhead_needs_a_gpu():
-    with pytest.raises(ValueError, match="needs device='cuda'"):
-        SUNRISE("MlpPolicy", "Pendulum-v1", device="cpu", compile_update="reduce-overhead")
 
 
 def test_a_learning_rate_schedule_does_not_recompile_the_step():

@@ -1,0 +1,174 @@
+"""
+Adam as a masked update inside a compiled gradient step: :class:`AdamPlan` holds what the update needs from a torch
+``Adam``/``AdamW`` optimizer and keeps its state in the optimizer, in torch's own format (a compiled model saves, loads
+and continues eagerly as any other); :func:`masked_adam` applies a step only where a flag tensor is true (a value of
+the step was not finite: parameters and state keep their values), so the step needs no host read to decide.
+"""
+
+from collections.abc import Callable, Sequence
+
+import torch as th
+
+#: A function that gives an optimizer's parameters, in its order, from the modules that hold them
+Parameters = Callable[[], list[th.Tensor]]
+#: One parameter's Adam state: ``(step, exp_avg, exp_avg_sq)``
+AdamState = tuple[th.Tensor, th.Tensor, th.Tensor]
+
+
+class AdamPlan:
+    """
+    What :func:`masked_adam` needs from a torch ``Adam`` or ``AdamW`` optimizer, fixed when the step is compiled: its
+    parameters in group order, each one's group, and each group's betas, eps and weight decay. The learning rates are
+    not part of the plan (they change without recompiling: :func:`masked_adam` takes them as tensors).
+
+    A compiled step reads neither the optimizer nor its parameter list: Dynamo would guard on every value of the
+    optimizer's groups (a scheduled learning rate would recompile the step at every ``train()`` call), and on every
+    parameter a second time, in Python, as the same object it reaches through the modules. The step takes the
+    parameters from ``parameters``, which reads them through the modules, as the forward pass does.
+
+    :param optimizer: the optimizer (``amsgrad``, ``maximize`` and ``differentiable`` are not supported)
+    :param name: what it optimizes, for error messages
+    :param parameters: the optimizer's parameters, in its order, through the modules that hold them
+    """
+
+    def __init__(self, optimizer: th.optim.Optimizer, name: str, parameters: Parameters):
+        if type(optimizer) not in (th.optim.Adam, th.optim.AdamW):
+            raise ValueError(
+                f"compile_update needs the {name} optimizer to be th.optim.Adam or th.optim.AdamW, got "
+                f"{type(optimizer).__name__}: pass optimizer_class=th.optim.Adam in policy_kwargs, or compile_update=False"
+            )
+        for option in ("amsgrad", "maximize", "differentiable"):
+            if any(group.get(option, False) for group in optimizer.param_groups):
+                raise ValueError(f"compile_update does not support Adam's {option}=True ({name} optimizer)")
+        self.optimizer = optimizer
+        self.params: list[th.Tensor] = [param for group in optimizer.param_groups for param in group["params"]]
+        held = parameters()
+        if [id(param) for param in held] != [id(param) for param in self.params]:
+            raise ValueError(
+                f"compile_update needs the {name} optimizer to hold the parameters of its modules, each once and in "
+                f"their order ({len(self.params)} in the optimizer, {len(held)} in the modules, not the same tensors "
+                "in the same order): build the optimizer from the modules' parameters, or use compile_update=False"
+            )
+        self.parameters = parameters
+        self.group_of: list[int] = [index for index, group in enumerate(optimizer.param_groups) for _ in group["params"]]
+        self.settings: list[tuple[float, float, float, float, bool]] = [
+            (*group["betas"], group["eps"], group["weight_decay"], bool(group.get("decoupled_weight_decay", False)))
+            for group in optimizer.param_groups
+        ]
+
+    def state(self) -> list[AdamState]:
+        """
+        Each parameter's ``(step, exp_avg, exp_avg_sq)`` from the optimizer (read outside the graph: loading a model
+        replaces them), created where missing as torch creates them, with ``step`` on the parameter's device; they
+        and the parameters are marked as static addresses (``torch._dynamo.mark_static_address``, unguarded), which
+        CUDA graphs need of every tensor the step writes in place.
+        """
+        states = []
+        for param in self.params:
+            state = self.optimizer.state[param]
+            if not state:
+                state["step"] = th.zeros((), dtype=th.float32, device=param.device)
+                state["exp_avg"] = th.zeros_like(param, memory_format=th.preserve_format)
+                state["exp_avg_sq"] = th.zeros_like(param, memory_format=th.preserve_format)
+            states.append((state["step"], state["exp_avg"], state["exp_avg_sq"]))
+        # Everything the step writes in place has a fixed address for CUDA graphs (cuda_graph_blockers): the states
+        # and the parameters no module holds (the entropy coefficient); unguarded, so a loaded model's new state
+        # tensors neither recompile the step nor are refused
+        for tensor in [*self.params, *(value for state in states for value in state)]:
+            th._dynamo.mark_static_address(tensor, guard=False)
+        if any(param.device.type != "cpu" for param in self.params):
+            # torch's own step (after loading without compile_update) accepts a device step when capturable
+            for group in self.optimizer.param_groups:
+                group["capturable"] = not group.get("fused", False)
+        return states
+
+
+def scalar_dtype(device: th.device) -> th.dtype:
+    """
+    The dtype of the scalars of a compiled step's Adam update (learning rates, bias corrections): float64, as torch's
+    ``Adam`` computes them in Python floats on the CPU (float32 on MPS, which has no float64).
+    """
+    return th.float32 if device.type == "mps" else th.float64
+
+
+def learning_rates_tensor(rates: Sequence[float], device: th.device) -> th.Tensor:
+    """Learning rates for a compiled step, in :func:`scalar_dtype`: the values torch's ``Adam`` steps with."""
+    return th.tensor(list(rates), dtype=scalar_dtype(device), device=device)
+
+
+def masked_adam(
+    plan: AdamPlan,
+    grads: Sequence[th.Tensor],
+    state: Sequence[AdamState],
+    learning_rates: Sequence[th.Tensor],
+    apply: th.Tensor,
+) -> None:
+    """
+    One Adam step of ``plan``'s parameters, committed only where ``apply`` is true: otherwise parameters and state
+    keep their values. Runs inside a compiled graph.
+
+    The arithmetic is that of torch's ``Adam`` on the CPU, operation for operation: the bias corrections and the step
+    size in float64 (torch computes them in Python floats), the moments by ``lerp`` and ``mul``/``addcmul``, and the
+    update as ``param - step_size * exp_avg / denom``. Run eagerly it gives torch's single-tensor ``Adam`` bit for
+    bit; computed in float32, the bias corrections alone made the compiled path drift from the eager one
+    (``benchmarks/compiled_vs_eager.py``).
+
+    :param grads: the gradient of each parameter, in the plan's order
+    :param state: ``plan.state()``
+    :param learning_rates: each parameter group's learning rate, a scalar tensor (:func:`learning_rates_tensor`)
+    :param apply: a boolean scalar tensor
+    """
+    with th.no_grad():
+        # Each parameter's step size and second-moment correction, stacked into one tensor first: Inductor then
+        # computes each once, where it would otherwise recompute the float64 powers in every vector of the update
+        scalars = []
+        params = plan.parameters()
+        for param, group, (step, _, _) in zip(params, plan.group_of, state, strict=True):
+            beta1, beta2 = plan.settings[group][:2]
+            dtype = scalar_dtype(param.device)
+            new_step = (step + 1).to(dtype)
+            bias_correction1 = 1 - th.pow(beta1, new_step)
+            bias_correction2_sqrt = (1 - th.pow(beta2, new_step)).sqrt()
+            scalars += [
+                (learning_rates[group].to(dtype) / bias_correction1).to(param.dtype),
+                bias_correction2_sqrt.to(param.dtype),
+            ]
+        corrections = th.stack(scalars)
+        for index, (param, grad, group, (step, exp_avg, exp_avg_sq)) in enumerate(
+            zip(params, grads, plan.group_of, state, strict=True)
+        ):
+            beta1, beta2, eps, weight_decay, decoupled = plan.settings[group]
+            step_size, bias_correction2_sqrt = corrections[2 * index], corrections[2 * index + 1]
+            new_param = param
+            if weight_decay != 0:
+                if decoupled:
+                    lr = learning_rates[group].to(scalar_dtype(param.device))
+                    new_param = param * (1 - lr * weight_decay).to(param.dtype)
+                else:
+                    grad = grad.add(param, alpha=weight_decay)
+            new_step = step + 1
+            new_exp_avg = exp_avg.lerp(grad, 1 - beta1)
+            new_exp_avg_sq = exp_avg_sq.mul(beta2).addcmul(grad, grad, value=1 - beta2)
+            denom = new_exp_avg_sq.sqrt() / bias_correction2_sqrt + eps
+            new_param = new_param - step_size * new_exp_avg / denom
+            param.copy_(th.where(apply, new_param, param))
+            exp_avg.copy_(th.where(apply, new_exp_avg, exp_avg))
+            exp_avg_sq.copy_(th.where(apply, new_exp_avg_sq, exp_avg_sq))
+            step.copy_(th.where(apply, new_step, step))
+
+
+def masked_polyak(targets: Sequence[th.Tensor], sources: Sequence[th.Tensor], tau: float, apply: th.Tensor) -> None:
+    """``target <- (1 - tau) * target + tau * source`` for each pair, where ``apply`` is true; inside a compiled graph."""
+    with th.no_grad():
+        for target, source in zip(targets, sources, strict=True):
+            target.copy_(th.where(apply, target * (1.0 - tau) + tau * source, target))
+
+
+def plans_learning_rates(plans: Sequence[AdamPlan], device: th.device) -> th.Tensor:
+    """A compiled step's ``learning_rates`` for ``plans``: each one's optimizer's current rate, in their order."""
+    return learning_rates_tensor([plan.optimizer.param_groups[0]["lr"] for plan in plans], device)
+
+
+def all_finite(tensors: Sequence[th.Tensor]) -> th.Tensor:
+    """A boolean scalar tensor: whether every entry of every tensor is finite (no host read)."""
+    return th.stack([th.isfinite(tensor).all() for tensor in tensors]).all()

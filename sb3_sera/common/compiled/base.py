@@ -1,0 +1,208 @@
+"""
+:class:`CompiledUpdate`, the one home of ``compile_update``: an off-policy algorithm that inherits it supplies its
+gradient step as a graph (``CompiledUpdate._gradient_step_graph``) and its optimizers' plans; the class compiles the
+step, runs a ``train()`` call's steps without reading anything back, reads their values once, logs them and hands the
+algorithm its own (``CompiledUpdate._after_compiled_steps``).
+"""
+
+from collections.abc import Callable, Sequence
+from functools import partial
+from typing import Any, ClassVar, NamedTuple
+
+import torch as th
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from torch.utils import _pytree
+
+from sb3_sera.common.compiled.adam import AdamPlan, AdamState, plans_learning_rates
+from sb3_sera.common.compiled.modes import COMPILE_MODES, CompileMode, available_mode, compile_step
+from sb3_sera.common.compiled.sac import SAC_LOGGED, sac_quantities
+from sb3_sera.common.compiled.skips import watching_cuda_graphs
+from sb3_sera.common.finite import NON_FINITE_ADVICE, gradient_step_context
+from sb3_sera.common.hyperparameters import check_choice
+from sb3_sera.common.off_policy import target_update_due
+
+
+class StepOutput(NamedTuple):
+    """What one compiled gradient step gives back: tensors only, nothing read from the device during the step."""
+
+    #: Whether this step and every earlier one of the ``train()`` call had only finite values (their updates applied)
+    healthy: th.Tensor
+    #: One flag per quantity the step checks (:attr:`CompiledUpdate.compiled_quantities`): whether it was finite
+    finite: th.Tensor
+    #: The step's values to log (``CompiledUpdate._logged_names``), ``(L,)``: their means over the call are logged
+    logged: th.Tensor
+    #: An algorithm's own values, read after the call's last step only (``CompiledUpdate._after_compiled_steps``)
+    extra: th.Tensor
+
+
+class CompiledUpdate(OffPolicyAlgorithm):
+    """
+    ``compile_update`` for an off-policy algorithm (comes before its SB3 algorithm in the bases): the whole gradient
+    step compiled into one graph with ``torch.compile``, Adam as a masked update (:func:`.masked_adam`: a non-finite
+    value changes nothing and raises ``FloatingPointError`` naming it when the ``train()`` call ends), and with
+    ``"reduce-overhead"`` replayed as a CUDA graph. Where the device cannot run the mode asked for (CUDA graphs on a
+    CPU, as for a model trained on a GPU loaded on a laptop), the best one it can runs, with one warning.
+
+    An algorithm supplies ``_gradient_step_graph`` and ``_optimizer_plans``, calls ``_setup_compiled_update`` at the
+    end of its ``_setup_model`` and ``_train_compiled`` from its ``train`` where ``_compiled_step`` is set; the rest
+    has defaults for SAC's family to override (the developer guide's "Compiling an algorithm").
+    """
+
+    #: What the step checks, in the order of its ``finite`` flags (a cause before its consequences)
+    compiled_quantities: ClassVar[tuple[str, ...]] = sac_quantities()
+    compile_update: CompileMode
+    target_update_interval: int
+    _compiled_step: Callable[..., StepOutput] | None
+    _adam_plans: list[AdamPlan]
+
+    def _take_compile_update(self, mode: CompileMode) -> None:
+        """Set ``compile_update`` (at construction), ``ValueError`` naming the modes for anything else."""
+        check_choice("compile_update", mode, COMPILE_MODES)
+        self.compile_update = mode
+
+    def _setup_compiled_update(self) -> None:
+        """Compile the gradient step and make its optimizers' plans, where ``compile_update`` asks for it."""
+        self._compiled_step, self._adam_plans = None, []
+        if not self.compile_update:
+            return
+        if self.use_sde:
+            raise ValueError(
+                "compile_update does not support use_sde=True: gSDE's exploration matrix is drawn outside the gradient "
+                "step with a graph of its own, which the compiled step cannot differentiate through; use one or the other"
+            )
+        self.compile_update = available_mode(self.compile_update, self.device)
+        self._adam_plans = self._optimizer_plans()
+        self._compiled_step = compile_step(self._gradient_step_graph, self.compile_update)
+
+    def _optimizer_plans(self) -> list[AdamPlan]:
+        """The Adam plans of the optimizers the step updates, in the order of its ``learning_rates`` and ``states``."""
+        raise NotImplementedError
+
+    def _gradient_step_graph(
+        self,
+        replay_data: Any,
+        *,
+        learning_rates: th.Tensor,
+        due: th.Tensor,
+        healthy: th.Tensor,
+        states: list[list[AdamState]],
+    ) -> StepOutput:
+        """
+        One gradient step as one graph: gradients from ``torch.autograd.grad``, Adam steps and target updates masked
+        by ``healthy`` and by whether this step's values were finite, nothing read back.
+
+        :param replay_data: the step's batch (``_sample_batch``)
+        :param learning_rates: ``_step_learning_rates``
+        :param due: the step's flags (``_step_flags``), a boolean tensor
+        :param healthy: whether every earlier step of the ``train()`` call had only finite values
+        :param states: each plan's Adam state (:meth:`.AdamPlan.state`), in ``_adam_plans`` order
+        """
+        raise NotImplementedError
+
+    def _step_learning_rates(self) -> th.Tensor:
+        """The step's ``learning_rates``: each plan's optimizer's current rate, in the plans' order."""
+        return plans_learning_rates(self._adam_plans, self.device)
+
+    def _step_flags(self, gradient_step: int) -> tuple[bool, ...]:
+        """
+        What is due after ``gradient_step`` of this ``train()`` call, the step's ``due``: whether the target networks
+        are updated (:func:`~sb3_sera.common.off_policy.target_update_due`).
+        """
+        return (target_update_due(self._n_updates, gradient_step, self.target_update_interval),)
+
+    def _sample_batch(self, batch_size: int) -> Any:
+        """A replayed batch for one step."""
+        assert self.replay_buffer is not None
+        return self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)
+
+    def _logged_names(self) -> list[str]:
+        """The names (under ``train/``) of the step's ``logged`` values: SAC's."""
+        return list(SAC_LOGGED[: 4 if getattr(self, "ent_coef_optimizer", None) is not None else 3])
+
+    def _record_logged(self, logged: list[float]) -> None:
+        """Record the means over a ``train()`` call of the steps' ``logged`` values, under ``_logged_names``."""
+        for name, value in zip(self._logged_names(), logged, strict=True):
+            self.logger.record(f"train/{name}", value)
+
+    def _after_compiled_steps(self, gradient_steps: int, extra: list[float]) -> None:
+        """
+        What the algorithm does once a ``train()`` call's ``gradient_steps`` steps are read, with the last one's
+        ``extra`` values (nothing by default).
+        """
+
+    def _train_compiled(self, gradient_steps: int, batch_size: int) -> None:
+        """
+        A ``train()`` call's steps through the compiled step: run without reading anything back, then the steps'
+        flags and logged values and the last one's ``extra`` read in one transfer; the logged means are recorded and
+        ``extra`` handed to ``_after_compiled_steps``. A non-finite value raises ``FloatingPointError`` naming the
+        first one; its step and those after it changed nothing.
+        """
+        outputs = self._run_compiled_steps(gradient_steps, batch_size)
+        logged, extra = read_steps(outputs, self.compiled_quantities, partial(gradient_step_context, self), outputs[-1].extra)
+        self._record_logged(logged)
+        self._after_compiled_steps(gradient_steps, extra)
+
+    def _run_compiled_steps(self, gradient_steps: int, batch_size: int) -> list[StepOutput]:
+        """
+        Run the compiled step ``gradient_steps`` times, each on a batch of ``_sample_batch``, without reading
+        anything back: each step gets the Adam states, the learning rates, its flags and the previous step's
+        ``healthy`` (after a non-finite value nothing changes). With CUDA graphs each replay overwrites the previous
+        one's outputs: they are copied.
+        """
+        assert self._compiled_step is not None
+        states = [plan.state() for plan in self._adam_plans]
+        learning_rates = self._step_learning_rates()
+        flags: dict[tuple[bool, ...], th.Tensor] = {}
+        healthy = th.ones((), dtype=th.bool, device=self.device)
+        outputs = []
+        for gradient_step in range(gradient_steps):
+            batch = self._sample_batch(batch_size)
+            due = self._step_flags(gradient_step)
+            if due not in flags:
+                flags[due] = th.tensor(due, device=self.device)
+            arguments = dict(learning_rates=learning_rates, due=flags[due], healthy=healthy, states=states)
+            if self.compile_update == "reduce-overhead":
+                th.compiler.cudagraph_mark_step_begin()
+                output = _pytree.tree_map(th.clone, watching_cuda_graphs(self._compiled_step, batch, arguments))
+            else:
+                output = self._compiled_step(batch, **arguments)
+            healthy = output.healthy
+            outputs.append(output)
+        return outputs
+
+    def _probe_arguments(self) -> dict[str, Any]:
+        """Arguments of one step that changes nothing (``healthy`` false), every flag due: to trace or check the step."""
+        flags = self._step_flags(0)
+        return dict(
+            learning_rates=self._step_learning_rates(),
+            due=th.ones(len(flags), dtype=th.bool, device=self.device),
+            healthy=th.tensor(False, device=self.device),
+            states=[plan.state() for plan in self._adam_plans],
+        )
+
+    def _excluded_save_params(self) -> list[str]:
+        return [*super()._excluded_save_params(), "_compiled_step", "_adam_plans"]
+
+
+def read_steps(
+    outputs: Sequence[StepOutput],
+    quantities: Sequence[str],
+    where: Callable[[int], str],
+    extra: th.Tensor | None = None,
+) -> tuple[list[float], list[float]]:
+    """
+    Read the steps' finite flags, the means of their logged values and ``extra`` (if given, on the steps' device) in
+    one transfer from the device. Raise ``FloatingPointError`` naming the first non-finite quantity (``quantities``,
+    in the order of the flags) and where it was (``where(gradient_step)``).
+
+    :return: the logged means and ``extra``'s values
+    """
+    finite = th.stack([output.finite for output in outputs])
+    logged = th.stack([output.logged for output in outputs]).mean(dim=0)
+    extra = finite.new_zeros(0) if extra is None else extra
+    values = th.cat([finite.flatten().float(), logged, extra.flatten().float()]).tolist()
+    n_flags = finite.numel()
+    if not all(values[:n_flags]):
+        step, quantity = divmod(values.index(0.0), len(quantities))
+        raise FloatingPointError(f"Non-finite {quantities[quantity]} {where(step)}: {NON_FINITE_ADVICE}")
+    return values[n_flags : n_flags + len(logged)], values[n_flags + len(logged) :]

@@ -1,0 +1,85 @@
+"""``compile_update``'s modes, and a gradient step through ``torch.compile`` in one of them."""
+
+import warnings
+from collections.abc import Callable
+from contextlib import AbstractContextManager
+from typing import Any, Literal, TypeVar
+
+import torch as th
+
+#: Graphs Dynamo keeps of one step function (Dynamo's default, 8, would stop a process at the ninth compiled model of
+#: a class: each model's step is the same function on another ``self``, a graph of its own)
+RECOMPILE_LIMIT = 256
+
+#: ``compile_update``'s values: off, on (one graph per gradient step), or on with CUDA graphs (a GPU is needed)
+CompileMode = Literal[False, True, "reduce-overhead"]
+COMPILE_MODES: tuple[CompileMode, ...] = (False, True, "reduce-overhead")
+
+_Output = TypeVar("_Output")
+
+
+def available_mode(mode: CompileMode, device: th.device) -> CompileMode:
+    """
+    ``mode`` where ``device`` can run it, else the best mode it can, with one warning that says what changed: CUDA
+    graphs (``"reduce-overhead"``) need a CUDA device, and elsewhere the step is compiled without them (``True``), as
+    when a model trained on a GPU is loaded on a laptop.
+    """
+    if mode == "reduce-overhead" and device.type != "cuda":
+        warnings.warn(
+            f"compile_update='reduce-overhead' replays the gradient step as a CUDA graph, which needs a CUDA device; "
+            f"the model is on {device.type!r}, so its step is compiled without CUDA graphs (compile_update=True)",
+            UserWarning,
+            stacklevel=4,
+        )
+        return True
+    return mode
+
+
+def compile_step(step: Callable[..., _Output], mode: CompileMode) -> Callable[..., _Output]:
+    """
+    ``step`` through ``torch.compile`` as one graph (``fullgraph=True``: a graph break is an error), static shapes,
+    random ops drawing from torch's generator as in eager mode (``fallback_random``), and with ``"reduce-overhead"``
+    replayed as a CUDA graph, in Dynamo's settings of :func:`tracing` (set only while the compiled step runs), with
+    Inductor's options of :func:`step_options`.
+    """
+    compiled = th.compile(step, fullgraph=True, dynamic=False, options=step_options(mode))
+
+    def run(*args: Any, **kwargs: Any) -> _Output:
+        with tracing():
+            return compiled(*args, **kwargs)
+
+    return run
+
+
+def step_options(mode: CompileMode) -> dict[str, Any]:
+    """
+    Inductor's options for a gradient step compiled with ``mode`` (:func:`compile_step`): the generated code does not
+    check the sizes, strides and alignment of what each library kernel returns (``size_asserts``,
+    ``alignment_asserts``: two Python calls per matrix product), and the random draws run in program order, as eager
+    draws them (:class:`~sb3_sera.common.graph_passes.KeepRandomOrder`).
+    """
+    # Inductor is imported where a step is compiled, not where the package is: it takes seconds
+    from sb3_sera.common.graph_passes import KeepRandomOrder
+
+    return {
+        "fallback_random": True,
+        "triton.cudagraphs": mode == "reduce-overhead",
+        "size_asserts": False,
+        "alignment_asserts": False,
+        "post_grad_custom_post_pass": KeepRandomOrder(),
+    }
+
+
+def tracing() -> AbstractContextManager[None]:
+    """
+    Dynamo's settings for tracing a gradient step: ``torch.autograd.grad`` traced into the graph
+    (``trace_autograd_ops``), operations whose output's size depends on the data, such as ``nonzero``, kept in it
+    (``capture_dynamic_output_shape_ops``: the sizes become symbols of the one graph, not recompilations), and room
+    for ``RECOMPILE_LIMIT`` models of a class in one process (``recompile_limit``).
+    """
+    return th._dynamo.config.patch(
+        trace_autograd_ops=True,
+        capture_dynamic_output_shape_ops=True,
+        recompile_limit=RECOMPILE_LIMIT,
+        accumulated_recompile_limit=max(RECOMPILE_LIMIT, th._dynamo.config.accumulated_recompile_limit),
+    )
