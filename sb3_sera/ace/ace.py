@@ -15,7 +15,7 @@ from stable_baselines3.common.utils import polyak_update
 
 from sb3_sera.ace.policies import ACEPolicy, MlpPolicy
 from sb3_sera.ace.tuning import ACE_TUNING
-from sb3_sera.common.arguments import check_gymnasium_env, checks_keywords
+from sb3_sera.common.arguments import check_gymnasium_env, checks_keywords, warn_if_device_unavailable
 from sb3_sera.common.capabilities import Capabilities
 from sb3_sera.common.finite import check_finite, check_replay_batch, gradient_step_context, with_env_step_check
 from sb3_sera.common.hyperparameters import base_arguments, check_choice, check_range
@@ -144,6 +144,7 @@ class ACE(NamedRuns, Capabilities, OffPolicyAlgorithm):
         check_choice("align_next_value", align_next_value, (True, False))
         self.align_next_value = align_next_value
         super().__init__(**arguments)
+        warn_if_device_unavailable(device, self.device)
         if _init_setup_model:
             self._setup_model()
 

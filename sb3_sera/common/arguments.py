@@ -168,3 +168,22 @@ def check_gymnasium_env(algorithm: str, env: Any, multi_agent: bool) -> None:
             "takes policy='CTDEPolicy' (SERASAC and the multi-agent algorithms)"
         )
     raise TypeError(f"{algorithm} got {got}, but SB3 algorithms train Gymnasium envs: {advice}.")
+
+
+def warn_if_device_unavailable(requested: Any, device: Any) -> None:
+    """
+    Warn where the device asked for (``requested``, e.g. ``"cuda"``) is not the one the model got (``device``): SB3
+    falls back to the CPU without a word when CUDA is missing. ``"auto"`` is never warned about.
+    """
+    import warnings
+
+    import torch as th
+
+    if str(requested) == "auto":
+        return
+    if th.device(requested).type != th.device(device).type:
+        warnings.warn(
+            f"device={str(requested)!r} is not available on this machine: the model trains on {str(device)!r}",
+            UserWarning,
+            stacklevel=3,
+        )

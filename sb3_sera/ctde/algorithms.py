@@ -19,7 +19,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, ReplayBufferSamples
 from torch.nn import functional as F
 
-from sb3_sera.common.arguments import check_keywords
+from sb3_sera.common.arguments import check_keywords, warn_if_device_unavailable
 from sb3_sera.common.capabilities import Capabilities
 from sb3_sera.common.compiled import (
     TD3_QUANTITIES,
@@ -76,6 +76,7 @@ class _CTDEAlgorithm(Capabilities, BaseAlgorithm):
         policy, env = arguments.pop("policy"), arguments.pop("env")
         env = make_env_for_policy(type(self), policy, env, arguments.get("verbose", 0))
         super().__init__(policy, env, **arguments)
+        warn_if_device_unavailable(arguments.get("device", "auto"), self.device)
 
     def _setup_model(self) -> None:
         fill_agent_layout(self)

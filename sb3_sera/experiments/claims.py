@@ -1,6 +1,6 @@
 """
 The paper's mechanism claims (Fig. 4a, 4b, 4c and 5) tested on run records: each claim compares one per-run summary
-between SERA and a baseline, as the difference of the means with its 95% bootstrap interval and a verdict.
+between SERA and a baseline, as the difference of the means with its 95% Welch t-interval and a verdict.
 
 Every summary is computed per run first, then compared across runs: a critic's index means nothing across seeds
 (critic i of one run is not critic i of another), so no matrix is averaged entry by entry. The summaries:

@@ -12,7 +12,7 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, PyTorch
 from stable_baselines3.common.utils import FloatSchedule, polyak_update
 from stable_baselines3.sac import SAC
 
-from sb3_sera.common.arguments import checks_keywords
+from sb3_sera.common.arguments import checks_keywords, warn_if_device_unavailable
 from sb3_sera.common.capabilities import Capabilities
 from sb3_sera.common.compiled import (
     AdamPlan,
@@ -55,7 +55,7 @@ from sb3_sera.sera.policies import (
     SERAPolicy,
     check_n_critics,
 )
-from sb3_sera.sera.step_size import StepSizeUpdate, VarianceAdaptiveStepSize
+from sb3_sera.sera.step_size import DEFAULT_CRITIC_LR_MAX, StepSizeUpdate, VarianceAdaptiveStepSize
 from sb3_sera.sera.tuning import SERASAC_TUNING
 from sb3_sera.sera.update import (
     DIAGNOSTICS,
@@ -69,8 +69,6 @@ from sb3_sera.sera.update import (
 
 #: Learning rate of the actor and the entropy coefficient, as SB3's SAC
 DEFAULT_LEARNING_RATE = 3e-4
-#: Critic learning rate at full gain ``kappa = 1`` (paper appendix B.1.4)
-DEFAULT_CRITIC_LR_MAX = 5e-4
 
 
 class SERASAC(NamedRuns, Capabilities, CompiledUpdate, SAC):
@@ -240,6 +238,7 @@ class SERASAC(NamedRuns, Capabilities, CompiledUpdate, SAC):
                 stacklevel=2,
             )
         super().__init__(**{**sac_arguments, "env": make_env_for_policy(type(self), policy, env, verbose)})
+        warn_if_device_unavailable(device, self.device)
 
     def _check_sera_hyperparameters(self, policy_kwargs: dict[str, Any] | None) -> None:
         """

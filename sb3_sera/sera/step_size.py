@@ -47,7 +47,13 @@ def kalman_gain(estimation_var: th.Tensor, measurement_var: th.Tensor, eps: floa
     return estimation_var / (estimation_var + measurement_var + eps)
 
 
-def critic_learning_rates(kappa: th.Tensor, lr_max: float | th.Tensor = 5e-4, kappa_min: float = 0.2) -> th.Tensor:
+#: Critic learning rate at full gain ``kappa = 1`` (paper appendix B.1.4)
+DEFAULT_CRITIC_LR_MAX = 5e-4
+
+
+def critic_learning_rates(
+    kappa: th.Tensor, lr_max: float | th.Tensor = DEFAULT_CRITIC_LR_MAX, kappa_min: float = 0.2
+) -> th.Tensor:
     """
     Map gains to learning rates ``lr_max * (kappa_min + (1 - kappa_min) * kappa)`` (paper eq. 16).
 
@@ -103,7 +109,7 @@ class VarianceAdaptiveStepSize(nn.Module):
         td_variance_ema: float = 0.9,
         estimation_variance_ema: float = 0.9,
         kappa_eps: float = 1e-8,
-        lr_max: float = 5e-4,
+        lr_max: float = DEFAULT_CRITIC_LR_MAX,
         kappa_min: float = 0.2,
     ):
         super().__init__()

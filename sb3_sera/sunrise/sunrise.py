@@ -15,7 +15,7 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 from stable_baselines3.common.utils import polyak_update
 
-from sb3_sera.common.arguments import check_gymnasium_env, checks_keywords
+from sb3_sera.common.arguments import check_gymnasium_env, checks_keywords, warn_if_device_unavailable
 from sb3_sera.common.capabilities import Capabilities
 from sb3_sera.common.compiled import (
     AdamPlan,
@@ -208,6 +208,7 @@ class SUNRISE(NamedRuns, Capabilities, CompiledUpdate, OffPolicyAlgorithm):
                 support_multi_env=True,
             )
         )
+        warn_if_device_unavailable(device, self.device)
         self.target_update_interval = check_int("target_update_interval", target_update_interval, 1)
         self.ent_coef = check_ent_coef(ent_coef)
         self.target_entropy = target_entropy

@@ -192,3 +192,23 @@ def test_learn_warns_when_it_would_train_nothing(algo):
     # A negative budget is an error, not a warning about learning_starts
     with pytest.raises(ValueError, match=rf"{algo.__name__}.learn: total_timesteps=-100 is negative"):
         model.learn(-100)
+
+
+@pytest.mark.skipif(th.cuda.is_available(), reason="tells what happens where CUDA is missing")
+@pytest.mark.parametrize(
+    ("algo", "policy", "env"),
+    [
+        (SERASAC, "MlpPolicy", ENV_ID),
+        (SUNRISE, "MlpPolicy", ENV_ID),
+        (ACE, "MlpPolicy", ENV_ID),
+        (MAPPO, "CTDEPolicy", "sb3_sera/SimpleSpread-v0"),
+    ],
+)
+def test_a_device_the_machine_lacks_is_named_in_a_warning(algo, policy, env):
+    # SB3 falls back to the CPU without a word; a user who asked for a GPU is told, once, where the model trains
+    with pytest.warns(UserWarning, match=r"device='cuda' is not available on this machine: the model trains on 'cpu'"):
+        model = algo(policy, env, device="cuda")
+    assert model.device.type == "cpu"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        algo(policy, env, device="cpu")
