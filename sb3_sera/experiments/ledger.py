@@ -38,6 +38,7 @@ from sb3_sera.experiments.claims import (
 from sb3_sera.experiments.declared import seen_before_lines
 from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sb3_sera.experiments.identity import identity_lines, load_code_hashes
+from sb3_sera.experiments.interim import held_back
 from sb3_sera.experiments.records import NPZ_ERRORS, RESULT_FILE, RunResult, env_name, load_result, read_record, run_ids
 from sb3_sera.experiments.report import Skipped, group_runs, load_runs, run_folders, section_table, write_report
 from sb3_sera.experiments.report.write import section_claims
@@ -255,6 +256,16 @@ def add_runs(sources: Sequence[str | Path], ledger: str | Path = LEDGER_DIR, unc
     return outcome
 
 
+def published_runs(ledger: str | Path = LEDGER_DIR) -> tuple[list[RunResult], list[Skipped], list[str]]:
+    """
+    The ledger's finished runs its pages show: every one but those an interim claim holds back
+    (:func:`~sb3_sera.experiments.interim.held_back`); the runs left out as unreadable; a line per holding claim.
+    """
+    runs, skipped = load_runs([ledger])
+    shown, held = held_back(ledger_claims(ledger), runs)
+    return shown, skipped, held
+
+
 def _sections(runs: Sequence[RunResult]) -> dict[tuple[str, int], list[Any]]:
     sections: dict[tuple[str, int], list[Any]] = {}
     for group in group_runs(runs):
@@ -274,10 +285,12 @@ def results_block(ledger: str | Path = LEDGER_DIR, reps: int = LEDGER_REPS) -> s
     and budget the report's table and a count of the exploratory claims' verdicts, with links to ``report.md`` (in
     the page's folder), which holds the exploratory claims and the figures.
     """
-    runs, skipped = load_runs([ledger])
+    runs, skipped, held = published_runs(ledger)
     lines = [BEGIN, ""]
     if not runs:
         lines += ["The ledger holds no finished run yet.", ""]
+    if held:
+        lines += ["Held back from every table, figure and claim until the claim has its planned runs:", "", *held, ""]
     groups = group_runs(runs)
     hashes = load_code_hashes(ledger)
     decided = _decided(ledger, groups)
@@ -328,7 +341,7 @@ def readme_block(ledger: str | Path = LEDGER_DIR, docs: str = DOCS_DIR) -> str:
     about (else the first task's), the primary claims with their verdicts, and links to the results page and the
     report in ``docs`` (a path from the README's folder).
     """
-    runs, _ = load_runs([ledger])
+    runs, _, _ = published_runs(ledger)
     lines = [BEGIN, ""]
     if not runs:
         lines += ["The ledger holds no finished run yet.", ""]
@@ -397,7 +410,7 @@ def write_results(
 
     :return: the report and the README
     """
-    runs, skipped = load_runs([ledger])
+    runs, skipped, _ = published_runs(ledger)
     if not runs:
         raise ValueError(f"{ledger}: the ledger holds no finished run")
     docs = Path(docs)

@@ -259,3 +259,24 @@ def test_a_ledger_with_claims_refuses_runs_that_enter_none_unless_asked(bench_ou
     (fresh / "claims.yml").write_text(f"alpha: 0.05\nclaims:\n  - {claim}\n")
     outcome = ledger.add_runs([bench_out], fresh)
     assert sorted(outcome.enters.values()) == [["toy"], ["toy"]] and len(outcome.added) == 2
+
+
+def test_an_interim_claim_holds_its_runs_back_from_every_table(bench_out, tmp_path):
+    # One run an arm of a claim planning two: the pages show neither run, only how many the claim holds back
+    results = tmp_path / "results"
+    results.mkdir()
+    claim = (
+        "{id: toy, task: Pendulum-v1, n_timesteps: 200, seeds: [0, 1], measure: final_return, arm: serasac, "
+        "baseline: sac, direction: higher, primary: true, family: toy, planned: 2}"
+    )
+    (results / "claims.yml").write_text(f"alpha: 0.05\nclaims:\n  - {claim}\n")
+    ledger.add_runs([bench_out], results)
+    shown, _, held = ledger.published_runs(results)
+    assert not shown and held == ["- toy: 1 of serasac and 1 of sac (2 an arm planned)"]
+    block = ledger.results_block(results)
+    assert "- toy: 1 of serasac and 1 of sac (2 an arm planned)" in block and "| serasac | 1 |" not in block
+    # Once the claim needs no more runs (planned 1), the runs and the claim's numbers appear
+    (results / "claims.yml").write_text(f"alpha: 0.05\nclaims:\n  - {claim.replace('planned: 2', 'planned: 1')}\n")
+    shown, _, held = ledger.published_runs(results)
+    assert len(shown) == 2 and not held
+    assert "| serasac | 1 |" in ledger.results_block(results)
