@@ -22,6 +22,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.noise import NormalActionNoise, OrnsteinUhlenbeckActionNoise
 from stable_baselines3.common.vec_env import VecEnv
 
+from sb3_sera.common.capabilities import capability
 from sb3_sera.common.mujoco_log import route_mujoco_warnings
 from sb3_sera.ctde.env import STATE_KEY
 from sb3_sera.experiments.checkpoint import Checkpointer, has_checkpoint, load_checkpoint, remove_checkpoints
@@ -218,7 +219,7 @@ def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
         model = make_model(spec, make_env(str(folder)), tensorboard_log=str(folder))
     callbacks: list[BaseCallback] = [callback, ProgressFile(folder / PROGRESS_FILE)]
     # A model that draws per-episode latents (IET) rebuilds its evaluation wrapper when training starts: not checkpointed
-    if spec.checkpoint_freq > 0 and not hasattr(model, "with_latents"):
+    if spec.checkpoint_freq > 0 and not capability(model, "acts_on_latents"):
         callbacks.append(Checkpointer(folder, spec.checkpoint_freq, callback, make_both, spec.env_id, elapsed))
     start = time.perf_counter()
     model.learn(
