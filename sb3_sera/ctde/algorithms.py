@@ -7,7 +7,7 @@ Each is its SB3 algorithm unchanged, with the ``"CTDEPolicy"`` alias: ``MASAC`` 
 """
 
 import inspect
-from typing import Any, ClassVar
+from typing import Any, ClassVar, cast
 
 import torch as th
 from stable_baselines3 import DDPG, PPO, SAC, TD3
@@ -93,13 +93,17 @@ class _CTDEAlgorithm(Capabilities, BaseAlgorithm):
     def train(self, *args: Any, **kwargs: Any) -> None:
         """SB3's ``train``, watched for non-finite values (see the class's docstring), or through the compiled step."""
         if isinstance(self, CompiledUpdate) and self._compiled_step is not None:
-            self._train_compiled_call(*args, **kwargs)
+            # The SB3 algorithm's own defaults (batch_size: SAC's 64, TD3's 100)
+            sb3_train = cast(type[OffPolicyAlgorithm], _sb3_algorithm(type(self))).train
+            call = inspect.signature(sb3_train).bind(self, *args, **kwargs)
+            call.apply_defaults()
+            self._train_compiled_call(call.arguments["gradient_steps"], call.arguments["batch_size"])
             return
         replay_buffer = self.replay_buffer if isinstance(self, OffPolicyAlgorithm) else None
         with FiniteUpdates(self, self._loss_optimizers(), replay_buffer).watch():
             super().train(*args, **kwargs)  # type: ignore[misc]  # the SB3 algorithm after this class in the bases
 
-    def _train_compiled_call(self, gradient_steps: int, batch_size: int = 100) -> None:
+    def _train_compiled_call(self, gradient_steps: int, batch_size: int) -> None:
         """SB3's ``train`` preamble and count around :meth:`.CompiledUpdate._train_compiled`."""
         assert isinstance(self, CompiledUpdate)
         self.policy.set_training_mode(True)

@@ -10,6 +10,7 @@ from typing import Any
 
 import gymnasium as gym
 import pytest
+from stable_baselines3.common.logger import configure
 
 from sb3_sera import IET, MADDPG, MASAC, MATD3
 from sb3_sera.common.compiled import count_graph_breaks, cuda_graph_blockers
@@ -130,3 +131,14 @@ def test_a_process_compiles_many_models_of_one_class():
         )
         model.learn(SETTINGS["learning_starts"] + 1)
     assert model._n_updates == 1
+
+
+def test_the_compiled_train_keeps_sb3s_default_batch_size(monkeypatch):
+    # train() without a batch_size: SB3 SAC's default (64) for MASAC, TD3's (100) for MATD3
+    for algorithm, expected in ((MASAC, 64), (MATD3, 100)):
+        model = algorithm("CTDEPolicy", CTDE_TASK, compile_update=True, **{**SETTINGS, "policy_kwargs": dict(net_arch=[16])})
+        model.set_logger(configure(None, []))
+        calls: list[tuple[int, int]] = []
+        monkeypatch.setattr(model, "_train_compiled", lambda steps, batch_size, calls=calls: calls.append((steps, batch_size)))
+        model.train(2)
+        assert calls == [(2, expected)]
