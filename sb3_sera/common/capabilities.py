@@ -1,6 +1,6 @@
 """What an algorithm of the package supports, declared on its class (BenchMARL's way) instead of lists kept elsewhere."""
 
-from typing import Any, ClassVar, Protocol
+from typing import Any, ClassVar, Protocol, cast
 
 import torch as th
 from stable_baselines3.common.type_aliases import ReplayBufferSamples
@@ -78,3 +78,13 @@ def capabilities(algorithm: type[Any]) -> dict[str, Any]:
 def capability(model: Any, name: str) -> Any:
     """The capability ``name`` of ``model``'s class (:func:`capabilities`)."""
     return capabilities(type(model))[name]
+
+
+def as_the_model_sees(model: Any, env: VecEnv) -> VecEnv:
+    """
+    ``env`` as ``model`` acts in it: with the model's latents added (``with_latents``, seeded with the model's seed as
+    the evaluation callback seeds them) for a model acting on latents, else ``env`` itself.
+    """
+    if capability(model, "acts_on_latents"):
+        return cast(ActsOnLatents, model).with_latents(env, seed=model.seed)
+    return env

@@ -38,6 +38,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.monitor import Monitor, ResultsWriter
 from stable_baselines3.common.vec_env import VecEnv
 
+from sb3_sera.common.capabilities import as_the_model_sees
 from sb3_sera.experiments.env_state import (
     StateNotCapturable,
     capture,
@@ -219,10 +220,14 @@ def load_checkpoint(
     if source is None:
         raise FileNotFoundError(f"{folder}: no whole checkpoint to resume from")
     state = load_data(source / "state.pkl")
-    restore(env, state["env"], ENV_NAMES[0])
-    if callback is not None and state["eval_env"] is not None:
-        restore(callback.eval_env, state["eval_env"], ENV_NAMES[1])  # type: ignore[attr-defined]
     model = model_class.load(source / "model.zip", env=env, device=device)
+    # Into the envs as the model sees them: a model acting on latents (IET) wraps them in its latents' env
+    assert model.env is not None
+    restore(model.env, state["env"], ENV_NAMES[0])
+    if callback is not None and state["eval_env"] is not None:
+        eval_env = as_the_model_sees(model, callback.eval_env)  # type: ignore[attr-defined]
+        restore(eval_env, state["eval_env"], ENV_NAMES[1])
+        callback.eval_env = eval_env  # type: ignore[attr-defined]
     buffer_state = load_data(source / "replay_buffer.pkl")
     if buffer_state is not None:
         _restore_buffer(model.replay_buffer, buffer_state)  # type: ignore[attr-defined]

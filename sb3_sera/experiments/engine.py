@@ -22,7 +22,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.noise import NormalActionNoise, OrnsteinUhlenbeckActionNoise
 from stable_baselines3.common.vec_env import VecEnv
 
-from sb3_sera.common.capabilities import capability
+from sb3_sera.common.capabilities import as_the_model_sees
 from sb3_sera.common.mujoco_log import route_mujoco_warnings
 from sb3_sera.ctde.env import STATE_KEY
 from sb3_sera.experiments.checkpoint import Checkpointer, has_checkpoint, load_checkpoint, remove_checkpoints
@@ -179,7 +179,9 @@ def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
         return make_vec_env(spec.env_id, n_envs=1, seed=spec.seed + 10_000, env_kwargs=env_kwargs)
 
     def make_both() -> tuple[VecEnv, VecEnv]:
-        return make_env(), make_eval_env()
+        # As the model sees its envs (IET's with its latents), for the checkpoint's check that their states go back
+        assert model is not None
+        return as_the_model_sees(model, make_env()), as_the_model_sees(model, make_eval_env())
 
     def make_callback() -> InitialStateBiasCallback:
         return InitialStateBiasCallback(
@@ -218,8 +220,7 @@ def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
     if model is None:
         model = make_model(spec, make_env(str(folder)), tensorboard_log=str(folder))
     callbacks: list[BaseCallback] = [callback, ProgressFile(folder / PROGRESS_FILE)]
-    # A model that draws per-episode latents (IET) rebuilds its evaluation wrapper when training starts: not checkpointed
-    if spec.checkpoint_freq > 0 and not capability(model, "acts_on_latents"):
+    if spec.checkpoint_freq > 0:
         callbacks.append(Checkpointer(folder, spec.checkpoint_freq, callback, make_both, spec.env_id, elapsed))
     start = time.perf_counter()
     model.learn(

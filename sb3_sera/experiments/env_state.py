@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 from stable_baselines3.common.monitor import Monitor
+from stable_baselines3.common.vec_env import VecEnvWrapper
 
 #: Values kept as they are
 _LEAVES = (type(None), bool, int, float, complex, str, bytes, slice, range, np.generic, np.dtype)
@@ -57,8 +58,9 @@ _CONSTANTS = (
     "gymnasium.envs.registration.EnvSpec",
     "gymnasium.envs.registration.WrapperSpec",
 )
-#: Attributes that hold no state of the environment: a monitor's file (a checkpoint reopens it)
-_NOT_STATE = ((Monitor, "results_writer"),)
+#: Attributes that hold no state of the environment: a monitor's file (a checkpoint reopens it), the members of a
+#: VecEnv wrapper's class (SB3 keeps them on the instance)
+_NOT_STATE = ((Monitor, "results_writer"), (VecEnvWrapper, "class_attributes"))
 #: How deep the walk goes before it gives up on an object graph
 MAX_DEPTH = 100
 

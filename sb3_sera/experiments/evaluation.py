@@ -21,7 +21,7 @@ from stable_baselines3.common.type_aliases import ReplayBufferSamples
 from stable_baselines3.sac import SAC
 from torch import nn
 
-from sb3_sera.common.capabilities import ActsOnLatents, OwnTDTargets, PerCriticRates, capability
+from sb3_sera.common.capabilities import OwnTDTargets, PerCriticRates, as_the_model_sees, capability
 from sb3_sera.sera.aggregation import correlation_matrix, mean_off_diagonal
 
 #: Files written beside ``evaluations.npz`` in the callback's ``log_path``
@@ -73,11 +73,10 @@ class InitialStateBiasCallback(EvalCallback):
         self.records_bias = False
 
     def _init_callback(self) -> None:
-        if capability(self.model, "acts_on_latents"):
-            # A model acting on per-episode latents (IET): its evaluation episodes draw them as its training episodes do,
-            # from a generator of their own seeded with the model's seed, so that evaluations are repeatable and leave
-            # training's random streams alone
-            self.eval_env = cast(ActsOnLatents, self.model).with_latents(self.eval_env, seed=self.model.seed)
+        # A model acting on per-episode latents (IET): its evaluation episodes draw them as its training episodes do,
+        # from a generator of their own seeded with the model's seed, so that evaluations are repeatable and leave
+        # training's random streams alone (an env already holding them, a resumed run's, is kept)
+        self.eval_env = as_the_model_sees(self.model, self.eval_env)
         super()._init_callback()
         policy = self.model.policy
         self.records_bias = _has_value_function(policy) or (

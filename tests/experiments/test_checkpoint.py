@@ -38,7 +38,7 @@ def _parameters(folder, spec) -> dict[str, th.Tensor]:
     return copy.deepcopy(model.policy.state_dict())
 
 
-@pytest.mark.parametrize(("algo", "env_id"), [("serasac", "Pendulum-v1"), ("masac", CTDE_TASK)])
+@pytest.mark.parametrize(("algo", "env_id"), [("serasac", "Pendulum-v1"), ("masac", CTDE_TASK), ("iet", CTDE_TASK)])
 def test_an_interrupted_run_resumes_to_the_same_final_parameters(tmp_path, monkeypatch, algo, env_id):
     overrides = {"learning_starts": 100, "batch_size": 32, "buffer_size": 2000}
     spec = make_spec(algo, algo, env_id, seed=0, n_timesteps=600, overrides=overrides, eval_freq=150, n_eval_episodes=1)
