@@ -10,8 +10,9 @@ and the first step at which it passes ``--bound`` with the parameter where it do
     OMP_NUM_THREADS=1 python benchmarks/compiled_vs_eager.py --against eager-gathered   # no compilation
 
 ``--against eager-gathered`` compares the eager path with itself, its actor value taken as the compiled step takes
-it (every critic with a graph, the selected one gathered, where the eager path runs the selected critic alone); ``--against step-uncompiled`` with the compiled path's step function run eagerly (its masked Adam and target
-update, no ``torch.compile``); ``--against compiled-unordered`` with the step compiled without keeping its random
+it (every critic with a graph, the selected one gathered, where the eager path runs the selected critic alone);
+``--against step-uncompiled`` with the compiled path's step function run eagerly (its masked Adam and target update,
+no ``torch.compile``); ``--against compiled-unordered`` with the step compiled without keeping its random
 draws in program order (:func:`unordered_draws`: how a step compiled before ``KeepRandomOrder``, with a torch before
 2.13, drew on CUDA).
 """

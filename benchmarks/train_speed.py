@@ -12,7 +12,8 @@ With ``--compile``, a third model, SERASAC with its whole gradient step compiled
 how many graphs and graph breaks Dynamo finds in that step (one graph, no break, when it compiles whole).
 ``--device cuda`` runs all three on a GPU. With ``--cpp-wrapper`` (CPU), a fourth, the compiled SERASAC with
 Inductor's C++ wrapper (``torch._inductor.config.cpp_wrapper``: the generated code calls its kernels from C++, not
-Python; its compilation takes minutes), joins too.
+Python; its compilation takes minutes), joins too. With ``--device-buffer``, the compiled SERASAC drawing its
+batches from a :class:`~sb3_sera.common.device_buffer.DeviceReplayBuffer` joins too (``SERASAC+compile+device``).
 
 Each figure is the median over blocks, with the interquartile range; the ratio is SAC's median rate over
 SERASAC's (the wall-time cost of SERASAC per gradient step, in units of SAC's).
@@ -31,7 +32,7 @@ from stable_baselines3 import SAC
 from stable_baselines3.common.base_class import BaseAlgorithm
 from timing import add_interleave_arguments, interleaved_rates, median_iqr
 
-from sb3_sera import SERASAC
+from sb3_sera import SERASAC, DeviceReplayBuffer
 from sb3_sera.common.compiled import CompileMode, count_graph_breaks
 from sb3_sera.common.mujoco_log import route_mujoco_warnings
 
@@ -44,6 +45,8 @@ def build_model(
         model: BaseAlgorithm = SAC("MlpPolicy", env_id, **common)
     else:
         compile_update = compile_mode if name.startswith("SERASAC+") else False
+        if name.endswith("+device"):
+            common["replay_buffer_class"] = DeviceReplayBuffer
         model = SERASAC("MlpPolicy", env_id, compile_update=compile_update, **common)
     # Fill the replay buffer with random transitions (no gradient step before learning_starts), then take a few
     # untimed gradient steps (compilation happens here)
@@ -64,12 +67,18 @@ def main() -> None:
     parser.add_argument("--cuda-graphs", action="store_true", help="with --compile: compile_update='reduce-overhead'")
     parser.add_argument("--device", default="cpu", help="torch device of all models, e.g. cuda")
     parser.add_argument("--cpp-wrapper", action="store_true", help="with --compile: also time it with a C++ wrapper")
+    parser.add_argument(
+        "--device-buffer", action="store_true", help="with --compile: also time it with the replay buffer on the device"
+    )
     args = parser.parse_args()
 
     if args.cpp_wrapper and (not args.compile or args.device != "cpu"):
         parser.error("--cpp-wrapper times a compiled step on the CPU: give it with --compile and --device cpu")
     th.set_num_threads(args.threads)
+    if args.device_buffer and not args.compile:
+        parser.error("--device-buffer times the compiled step with a DeviceReplayBuffer: give it with --compile")
     names = ["SAC", "SERASAC", *(["SERASAC+compile"] if args.compile else [])]
+    names += ["SERASAC+compile+device"] if args.device_buffer else []
     compile_mode: CompileMode = "reduce-overhead" if args.cuda_graphs else True
     build = partial(
         build_model,
@@ -86,13 +95,13 @@ def main() -> None:
             models["SERASAC+cpp"] = build("SERASAC+cpp")
     device = th.cuda.get_device_name() if args.device.startswith("cuda") else "CPU"
     print(f"{args.env}, batch {args.batch_size}, {args.threads} torch thread(s), torch {th.__version__}, {device}")
-    print(f"{'mode':<6} {'algorithm':<15} {'steps/s (median)':>17} {'IQR':>15}  ratio (SAC rate / rate)")
+    print(f"{'mode':<6} {'algorithm':<23} {'steps/s (median)':>17} {'IQR':>15}  ratio (SAC rate / rate)")
     for mode in args.modes:
         rates = interleaved_rates(models, mode, args.blocks, args.block_steps, args.batch_size, args.warmup_blocks)
         stats = {name: median_iqr(values) for name, values in rates.items()}
         for name, (median, low, high) in stats.items():
             ratio = stats["SAC"][0] / median
-            print(f"{mode:<6} {name:<15} {median:>17.1f} {f'{low:.1f}-{high:.1f}':>15}  {ratio:.2f}x")
+            print(f"{mode:<6} {name:<23} {median:>17.1f} {f'{low:.1f}-{high:.1f}':>15}  {ratio:.2f}x")
     if args.compile:
         # After the timing: tracing again for the count resets Dynamo's compiled code
         compiled = models["SERASAC+compile"]

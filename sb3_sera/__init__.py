@@ -1,6 +1,7 @@
 """sb3-sera: Soft Ensemble Reliability Aggregation (SERA) for Stable-Baselines3."""
 
 from sb3_sera.ace import ACE
+from sb3_sera.common.device_buffer import DeviceDictReplayBuffer, DeviceReplayBuffer
 from sb3_sera.common.mujoco_log import route_mujoco_warnings
 from sb3_sera.ctde import CTDEEnv, register_tasks
 from sb3_sera.ctde.algorithms import MADDPG, MAPPO, MASAC, MATD3
@@ -16,4 +17,18 @@ register_tasks()
 # MuJoCo's warnings through Python's, never into MUJOCO_LOG.TXT in the user's working directory
 route_mujoco_warnings()
 
-__all__ = ["ACE", "IET", "MADDPG", "MAPPO", "MASAC", "MATD3", "SERASAC", "SUNRISE", "CTDEEnv", "__version__", "register_tasks"]
+__all__ = [
+    "ACE",
+    "IET",
+    "MADDPG",
+    "MAPPO",
+    "MASAC",
+    "MATD3",
+    "SERASAC",
+    "SUNRISE",
+    "CTDEEnv",
+    "DeviceDictReplayBuffer",
+    "DeviceReplayBuffer",
+    "__version__",
+    "register_tasks",
+]

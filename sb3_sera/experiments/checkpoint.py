@@ -85,16 +85,32 @@ def _walk_wrappers(env: Any) -> Iterator[Any]:
             sub_env = getattr(sub_env, "env", None)
 
 
+def _filled_part(value: Any, buffer: ReplayBuffer) -> np.ndarray | None:
+    """A NumPy copy of the filled part of one of the buffer's arrays or tensors (a device buffer's); None for others."""
+    if not isinstance(value, np.ndarray | th.Tensor) or value.shape[:1] != (buffer.buffer_size,):
+        return None
+    filled = buffer.buffer_size if buffer.full else buffer.pos
+    return value[:filled].cpu().numpy().copy() if isinstance(value, th.Tensor) else value[:filled].copy()
+
+
 def _buffer_arrays(buffer: ReplayBuffer) -> dict[str, Any]:
     """The buffer's arrays cut to their filled part (a dict observation: each key's), with its position."""
-    filled = buffer.buffer_size if buffer.full else buffer.pos
     arrays: dict[str, Any] = {}
     for name, value in vars(buffer).items():
-        if isinstance(value, np.ndarray) and value.shape[:1] == (buffer.buffer_size,):
-            arrays[name] = value[:filled].copy()
-        elif isinstance(value, dict) and value and all(isinstance(v, np.ndarray) for v in value.values()):
-            arrays[name] = {key: array[:filled].copy() for key, array in value.items()}
+        if isinstance(value, dict) and value:
+            parts = {key: _filled_part(entry, buffer) for key, entry in value.items()}
+            if all(part is not None for part in parts.values()):
+                arrays[name] = parts
+        elif (part := _filled_part(value, buffer)) is not None:
+            arrays[name] = part
     return {"arrays": arrays, "pos": buffer.pos, "full": buffer.full}
+
+
+def _write_filled_part(target: np.ndarray | th.Tensor, array: np.ndarray) -> None:
+    if isinstance(target, th.Tensor):
+        target[: len(array)] = th.from_numpy(array).to(target.device)
+    else:
+        target[: len(array)] = array
 
 
 def _restore_buffer(buffer: ReplayBuffer, saved: dict[str, Any]) -> None:
@@ -102,9 +118,9 @@ def _restore_buffer(buffer: ReplayBuffer, saved: dict[str, Any]) -> None:
         target = getattr(buffer, name)
         if isinstance(value, dict):
             for key, array in value.items():
-                target[key][: len(array)] = array
+                _write_filled_part(target[key], array)
         else:
-            target[: len(value)] = value
+            _write_filled_part(target, value)
     buffer.pos, buffer.full = saved["pos"], saved["full"]
 
 

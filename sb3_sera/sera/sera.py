@@ -332,7 +332,8 @@ class SERASAC(NamedRuns, Capabilities, CompiledUpdate, SAC):
         return update.target_q_values, update.current_q_values
 
     def critic_learning_rates(self) -> list[float]:
-        """Each critic's current learning rate, in critic order."""
+        """Each critic's current learning rate, in critic order (the compiled steps run so far read first)."""
+        self.read_pending_steps()
         rates = {group["critic_index"]: group["lr"] for group in self.critic.optimizer.param_groups}
         return [rates[index] for index in range(self.critic.n_critics)]
 
@@ -350,6 +351,7 @@ class SERASAC(NamedRuns, Capabilities, CompiledUpdate, SAC):
             return
         if self._compiled_step is not None:
             self._train_compiled(gradient_steps, batch_size)
+            self._count_updates(gradient_steps)
             return
         logged: dict[str, list[th.Tensor]] = {"ent_coef": [], "actor_loss": [], "critic_loss": []}
         for gradient_step in range(gradient_steps):
@@ -369,16 +371,17 @@ class SERASAC(NamedRuns, Capabilities, CompiledUpdate, SAC):
             self._critic_step(critic.critic_loss, logged)
             self._actor_step(gradient_step, replay_data.observations, actions_pi, log_prob, ent_coef, logged)
             self._target_step(gradient_step)
-        self._end_train(gradient_steps, diagnostics(critic, target_entropy).tolist(), critic_rates)
+        self._count_updates(gradient_steps)
+        self._record_diagnostics(diagnostics(critic, target_entropy).tolist(), critic_rates)
         record_means(self.logger, logged)
 
-    def _end_train(self, gradient_steps: int, diagnostics: list[float], critic_rates: list[float]) -> None:
-        """
-        Count the updates, log the last step's diagnostics (:func:`~sb3_sera.sera.update.diagnostics`' values) and the
-        critics' rates.
-        """
+    def _count_updates(self, gradient_steps: int) -> None:
+        """Count a ``train()`` call's updates, as SB3's SAC does."""
         self._n_updates += gradient_steps
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+
+    def _record_diagnostics(self, diagnostics: list[float], critic_rates: list[float]) -> None:
+        """Log the last step's diagnostics (:func:`~sb3_sera.sera.update.diagnostics`' values) and the critics' rates."""
         n_critics = self.critic.n_critics
         names = [
             *(f"train/{name}" for name in DIAGNOSTICS),
@@ -466,12 +469,12 @@ class SERASAC(NamedRuns, Capabilities, CompiledUpdate, SAC):
         extra = th.cat([critic_rates, diagnostics(critic, target_entropy)])
         return StepOutput(healthy=update.applied, finite=update.finite, logged=logged, extra=extra)
 
-    def _after_compiled_steps(self, gradient_steps: int, extra: list[float]) -> None:
+    def _after_compiled_steps(self, extra: list[float]) -> None:
         n_critics = self.critic.n_critics
         critic_rates, step_diagnostics = extra[:n_critics], extra[n_critics:]
         if self.adaptive_critic_lr:
             self._update_critic_learning_rates(critic_rates)
-        self._end_train(gradient_steps, step_diagnostics, critic_rates)
+        self._record_diagnostics(step_diagnostics, critic_rates)
 
     def _start_train(self) -> list[float]:
         """Training mode, the actor's and entropy coefficient's schedules, the critics' rates; returns the latter."""

@@ -1,6 +1,6 @@
 """
 ``compile_update``: SERASAC's whole gradient step as one ``torch.compile`` graph, equal to the eager step up to float
-rounding, with the non-finite guard kept (read once per ``train()`` call, updates masked) and save/load.
+rounding, with the non-finite guard kept (read once per log interval in ``learn()``, updates masked) and save/load.
 """
 
 import math
@@ -13,7 +13,9 @@ from stable_baselines3.common.utils import set_random_seed
 
 from sb3_sera import SERASAC
 from sb3_sera.common.compiled import count_graph_breaks
+from sb3_sera.common.device_buffer import DeviceReplayBuffer
 from tests.helpers import (
+    HostReads,
     assert_close_state,
     assert_compiled_stays_with_eager,
     assert_gpu_trained_model_loads_on_the_cpu,
@@ -106,6 +108,26 @@ def test_a_non_finite_value_stops_the_compiled_step_and_changes_nothing(poison, 
         model.train(gradient_steps=3, batch_size=SETTINGS["batch_size"])
     assert_same_state(before, snapshot(model, optimizers=True))
     assert model._n_updates == updates
+
+
+def test_learn_reads_back_once_per_log_interval_from_a_device_buffer():
+    model = build(True, replay_buffer_class=DeviceReplayBuffer)
+    with HostReads() as reads:
+        model.learn(400, reset_num_timesteps=False)
+    # The action of each env step, and the steps' values once per log interval and when learn() ends
+    assert 400 <= reads.count <= 1.1 * 400
+    assert model.logger.name_to_value["train/critic_loss"] > 0 and not model._pending_outputs
+    # A non-finite step in learn(): it and every step after it change nothing, and the read names it
+    model.replay_buffer.rewards[:] = math.nan
+    before, updates = snapshot(model, optimizers=True), model._n_updates
+    with pytest.raises(FloatingPointError, match=rf"^Non-finite TD target at gradient step {updates + 1} "):
+        model.learn(30, reset_num_timesteps=False)
+    assert_same_state(before, snapshot(model, optimizers=True))
+    # Asked for, every train() call is read
+    model.read_every_train, model.replay_buffer.rewards[:] = True, 0.0
+    with HostReads() as reads:
+        model.learn(10, reset_num_timesteps=False)
+    assert reads.count >= 20
 
 
 def test_a_compiled_model_saves_loads_and_goes_on(eager_and_compiled, tmp_path):

@@ -1,13 +1,15 @@
 """
 :class:`CompiledUpdate`, the one home of ``compile_update``: an off-policy algorithm that inherits it supplies its
 gradient step as a graph (``CompiledUpdate._gradient_step_graph``) and its optimizers' plans; the class compiles the
-step, runs a ``train()`` call's steps without reading anything back, reads their values once, logs them and hands the
-algorithm its own (``CompiledUpdate._after_compiled_steps``).
+step, runs a ``train()`` call's steps on batches drawn at once without reading anything back, reads the steps' values
+once per log interval in ``learn()`` (or after every call), logs them and hands the algorithm its own
+(``CompiledUpdate._after_compiled_steps``).
 """
 
+import io
+import pathlib
 from collections.abc import Callable, Sequence
-from functools import partial
-from typing import Any, ClassVar, NamedTuple
+from typing import Any, ClassVar, NamedTuple, TypeVar
 
 import torch as th
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
@@ -17,9 +19,15 @@ from sb3_sera.common.compiled.adam import AdamPlan, AdamState, plans_learning_ra
 from sb3_sera.common.compiled.modes import COMPILE_MODES, CompileMode, available_mode, compile_step
 from sb3_sera.common.compiled.sac import SAC_LOGGED, sac_quantities
 from sb3_sera.common.compiled.skips import watching_cuda_graphs
-from sb3_sera.common.finite import NON_FINITE_ADVICE, gradient_step_context
+from sb3_sera.common.device_buffer import DeviceReplayBuffer, device_buffer_class
+from sb3_sera.common.finite import NON_FINITE_ADVICE
 from sb3_sera.common.hyperparameters import check_choice
 from sb3_sera.common.off_policy import target_update_due
+
+SelfCompiledUpdate = TypeVar("SelfCompiledUpdate", bound="CompiledUpdate")
+
+#: Gradient steps whose values ``learn()`` keeps on the device before it reads them, whatever the log interval
+MAX_PENDING_STEPS = 1000
 
 
 class StepOutput(NamedTuple):
@@ -43,6 +51,16 @@ class CompiledUpdate(OffPolicyAlgorithm):
     ``"reduce-overhead"`` replayed as a CUDA graph. Where the device cannot run the mode asked for (CUDA graphs on a
     CPU, as for a model trained on a GPU loaded on a laptop), the best one it can runs, with one warning.
 
+    The batches: with ``"reduce-overhead"`` on CUDA the replay buffer is on the device by default
+    (:class:`~sb3_sera.common.device_buffer.DeviceReplayBuffer`, or the Dict one), and a ``train()`` call's batches are
+    drawn at once from a device buffer.
+
+    The reads: in ``learn()`` the steps' finite checks and logged values stay on the device and are read back once per
+    log interval (when ``learn()`` logs, after at most :data:`MAX_PENDING_STEPS` gradient steps, and when it ends); a
+    non-finite step and every step after it change nothing, and the read raises ``FloatingPointError`` naming the
+    first such step. ``read_every_train = True`` reads after every ``train()`` call instead, as does a ``train()``
+    called outside ``learn()``.
+
     An algorithm supplies ``_gradient_step_graph`` and ``_optimizer_plans``, calls ``_setup_compiled_update`` at the
     end of its ``_setup_model`` and ``_train_compiled`` from its ``train`` where ``_compiled_step`` is set; the rest
     has defaults for SAC's family to override (the developer guide's "Compiling an algorithm").
@@ -54,6 +72,28 @@ class CompiledUpdate(OffPolicyAlgorithm):
     target_update_interval: int
     _compiled_step: Callable[..., StepOutput] | None
     _adam_plans: list[AdamPlan]
+    #: Read the steps' values back after every ``train()`` call, not once per log interval
+    read_every_train: bool = False
+    #: Whether ``learn()`` is running with its reads deferred to the log interval
+    _deferring_reads: bool = False
+    #: The steps run and not yet read: their outputs, and where each ``train()`` call began (its first update's
+    #: number, the timesteps)
+    _pending_outputs: list[StepOutput]
+    _pending_calls: list[tuple[int, int, int]]
+    #: Whether every pending step had only finite values (the next step's ``healthy``); None: no step pending
+    _pending_healthy: th.Tensor | None
+
+    def _setup_model(self) -> None:
+        # CUDA graphs' batches drawn on the device, unless a buffer class is given
+        if self.replay_buffer_class is None and self.compile_update == "reduce-overhead" and self.device.type == "cuda":
+            self.replay_buffer_class = device_buffer_class(self.observation_space)
+        super()._setup_model()
+        if isinstance(self.replay_buffer, DeviceReplayBuffer) and self._vec_normalize_env is not None:
+            raise ValueError(
+                f"{type(self.replay_buffer).__name__} does not support VecNormalize (SB3 normalizes a sampled batch with "
+                "the env's NumPy statistics on the host): pass replay_buffer_class=ReplayBuffer (DictReplayBuffer for "
+                "Dict observations), or train without VecNormalize"
+            )
 
     def _take_compile_update(self, mode: CompileMode) -> None:
         """Set ``compile_update`` (at construction), ``ValueError`` naming the modes for anything else."""
@@ -63,6 +103,7 @@ class CompiledUpdate(OffPolicyAlgorithm):
     def _setup_compiled_update(self) -> None:
         """Compile the gradient step and make its optimizers' plans, where ``compile_update`` asks for it."""
         self._compiled_step, self._adam_plans = None, []
+        self._pending_outputs, self._pending_calls, self._pending_healthy = [], [], None
         if not self.compile_update:
             return
         if self.use_sde:
@@ -115,6 +156,12 @@ class CompiledUpdate(OffPolicyAlgorithm):
         assert self.replay_buffer is not None
         return self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)
 
+    def _sample_batches(self, gradient_steps: int, batch_size: int) -> list[Any]:
+        """A ``train()`` call's batches: drawn at once from a device buffer, else one ``_sample_batch`` per step."""
+        if isinstance(self.replay_buffer, DeviceReplayBuffer):
+            return self.replay_buffer.sample_batches(gradient_steps, batch_size)
+        return [self._sample_batch(batch_size) for _ in range(gradient_steps)]
+
     def _logged_names(self) -> list[str]:
         """The names (under ``train/``) of the step's ``logged`` values: SAC's."""
         return list(SAC_LOGGED[: 4 if getattr(self, "ent_coef_optimizer", None) is not None else 3])
@@ -124,39 +171,84 @@ class CompiledUpdate(OffPolicyAlgorithm):
         for name, value in zip(self._logged_names(), logged, strict=True):
             self.logger.record(f"train/{name}", value)
 
-    def _after_compiled_steps(self, gradient_steps: int, extra: list[float]) -> None:
+    def _after_compiled_steps(self, extra: list[float]) -> None:
         """
-        What the algorithm does once a ``train()`` call's ``gradient_steps`` steps are read, with the last one's
-        ``extra`` values (nothing by default).
+        What the algorithm does once the pending steps are read, with the last one's ``extra`` values (nothing by
+        default).
         """
 
     def _train_compiled(self, gradient_steps: int, batch_size: int) -> None:
         """
-        A ``train()`` call's steps through the compiled step: run without reading anything back, then the steps'
-        flags and logged values and the last one's ``extra`` read in one transfer; the logged means are recorded and
-        ``extra`` handed to ``_after_compiled_steps``. A non-finite value raises ``FloatingPointError`` naming the
-        first one; its step and those after it changed nothing.
+        A ``train()`` call's steps through the compiled step, run without reading anything back; then, unless
+        ``learn()`` defers the read to its log interval, :meth:`read_pending_steps`.
         """
-        outputs = self._run_compiled_steps(gradient_steps, batch_size)
-        logged, extra = read_steps(outputs, self.compiled_quantities, partial(gradient_step_context, self), outputs[-1].extra)
+        self._pending_calls.append((self._n_updates, self.num_timesteps, gradient_steps))
+        self._pending_outputs += self._run_compiled_steps(gradient_steps, batch_size)
+        if not self._deferring_reads or len(self._pending_outputs) >= MAX_PENDING_STEPS:
+            self.read_pending_steps()
+
+    def read_pending_steps(self) -> None:
+        """
+        Read the steps run since the last read in one transfer: their finite flags, their logged values and the last
+        one's ``extra``; record the logged means and hand ``extra`` to ``_after_compiled_steps``. A non-finite value
+        raises ``FloatingPointError`` naming the first one and its gradient step; that step and those after it changed
+        nothing. Nothing pending: nothing read.
+        """
+        outputs, calls = self._pending_outputs, self._pending_calls
+        if not outputs:
+            return
+        self._pending_outputs, self._pending_calls, self._pending_healthy = [], [], None
+
+        def where(index: int) -> str:
+            for first_update, timesteps, count in calls:
+                if index < count:
+                    return f"at gradient step {first_update + index + 1} (num_timesteps={timesteps})"
+                index -= count
+            raise IndexError(index)
+
+        logged, extra = read_steps(outputs, self.compiled_quantities, where, outputs[-1].extra)
         self._record_logged(logged)
-        self._after_compiled_steps(gradient_steps, extra)
+        self._after_compiled_steps(extra)
+
+    def learn(self: SelfCompiledUpdate, *args: Any, **kwargs: Any) -> SelfCompiledUpdate:
+        """
+        SB3's ``learn``, the compiled steps' values read once per log interval (see the class's docstring) unless
+        ``read_every_train``.
+        """
+        self._deferring_reads = self._compiled_step is not None and not self.read_every_train
+        try:
+            super().learn(*args, **kwargs)
+        finally:
+            self._deferring_reads = False
+        self.read_pending_steps()
+        return self
+
+    def dump_logs(self) -> None:
+        self.read_pending_steps()
+        super().dump_logs()
+
+    def load_replay_buffer(self, path: str | pathlib.Path | io.BufferedIOBase, truncate_last_traj: bool = True) -> None:
+        """SB3's ``load_replay_buffer``; a device buffer is put on the model's device."""
+        super().load_replay_buffer(path, truncate_last_traj)
+        if isinstance(self.replay_buffer, DeviceReplayBuffer):
+            self.replay_buffer.to(self.device)
 
     def _run_compiled_steps(self, gradient_steps: int, batch_size: int) -> list[StepOutput]:
         """
-        Run the compiled step ``gradient_steps`` times, each on a batch of ``_sample_batch``, without reading
+        Run the compiled step ``gradient_steps`` times, on the batches of ``_sample_batches``, without reading
         anything back: each step gets the Adam states, the learning rates, its flags and the previous step's
-        ``healthy`` (after a non-finite value nothing changes). With CUDA graphs each replay overwrites the previous
-        one's outputs: they are copied.
+        ``healthy`` (after a non-finite value nothing changes, until the read). With CUDA graphs each replay
+        overwrites the previous one's outputs: they are copied.
         """
         assert self._compiled_step is not None
         states = [plan.state() for plan in self._adam_plans]
         learning_rates = self._step_learning_rates()
         flags: dict[tuple[bool, ...], th.Tensor] = {}
-        healthy = th.ones((), dtype=th.bool, device=self.device)
+        healthy = self._pending_healthy
+        if healthy is None:
+            healthy = th.ones((), dtype=th.bool, device=self.device)
         outputs = []
-        for gradient_step in range(gradient_steps):
-            batch = self._sample_batch(batch_size)
+        for gradient_step, batch in enumerate(self._sample_batches(gradient_steps, batch_size)):
             due = self._step_flags(gradient_step)
             if due not in flags:
                 flags[due] = th.tensor(due, device=self.device)
@@ -168,6 +260,7 @@ class CompiledUpdate(OffPolicyAlgorithm):
                 output = self._compiled_step(batch, **arguments)
             healthy = output.healthy
             outputs.append(output)
+        self._pending_healthy = healthy
         return outputs
 
     def _probe_arguments(self) -> dict[str, Any]:
@@ -181,7 +274,14 @@ class CompiledUpdate(OffPolicyAlgorithm):
         )
 
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "_compiled_step", "_adam_plans"]
+        return [
+            *super()._excluded_save_params(),
+            "_compiled_step",
+            "_adam_plans",
+            "_pending_outputs",
+            "_pending_calls",
+            "_pending_healthy",
+        ]
 
 
 def read_steps(
