@@ -1,39 +1,5 @@
 """
-The paper's mechanism claims (Fig. 4a, 4b, 4c and 5) tested on run records: each claim compares one per-run summary
-between SERA and a baseline, as the difference of the means with its 95% Welch t-interval and a verdict.
-
-Every summary is computed per run first, then compared across runs: a critic's index means nothing across seeds
-(critic i of one run is not critic i of another), so no matrix is averaged entry by entry. The summaries:
-
-- Fig. 5 (critics that share a step size synchronise), at the last evaluation. The values' own correlation is near
-  1 for any trained ensemble (values differ most between states), so four measures that can move:
-
-  - ``td_error_corr``: the mean off-diagonal correlation of the critics' TD errors on replayed transitions (the
-    quantity the ensemble's variance reduction depends on: the variance of a mean of K errors is
-    ``sigma^2 (1 + (K-1) rho) / K``);
-  - ``mc_error_corr``: the same for the critics' errors against the Monte Carlo returns of the evaluation episodes;
-    every error shares whatever separates the critics' soft values from the deterministic policy's returns, so
-    this one can saturate too;
-  - ``relative_disagreement``: the critics' mean variance about their ensemble mean over the variance of the
-    ensemble mean, ``tr(P C P) / K`` over ``1' C 1 / K^2`` with ``C`` the critics' value covariance on replayed
-    transitions and ``P = I - 11'/K``: how much of what the critics say is their own. It is blind to the shared part
-    of their errors, which is what saturates the correlations. Synchronised critics drive it to 0;
-  - ``closest_pair``: the smallest pairwise distance ``Var(Q_i - Q_j)`` over the mean pairwise distance: 1 when
-    every pair of critics is as far apart as the average pair, near 0 when two critics are near duplicates (the
-    pattern the paper's Fig. 5 describes for a fixed learning rate).
-- ``target_relative_variance``: the TD target's batch variance over its mean square, ``Var(y) / mean(y^2)`` (the
-  variance normalised by the targets' scale, so that a policy that earns more is not penalised for its larger
-  values; unlike ``Var(y) / mean(y)^2`` it stays in [0, 1] where the targets' mean passes zero), averaged over the
-  evaluations of the second half of training (Fig. 4c).
-- ``relative_bias``: the initial-state bias ``|V(s0) - G|`` (``G`` the discounted return) relative to the returns'
-  scale, over the evaluations after ``learning_starts`` (Fig. 4a): values and their errors grow with what a policy
-  earns, so the raw bias would favour the policy that learns least.
-- ``auc``: the normalized area under the learning curve (Fig. 4b).
-
-- ``final_return``: the mean of the last :data:`~sb3_sera.experiments.records.FINAL_EVALUATIONS` evaluations'
-  mean returns; ``abs_bias`` and ``signed_bias``: ``|V(s0) - G|`` and ``V(s0) - G`` in return units (the paper's
-  Fig. 4a), ``target_var``: the raw ``Var(y)`` (the paper's Fig. 4c), ``value_corr``: the critics' mean off-diagonal
-  value correlation (the paper's Fig. 5).
+The claims the ledger tests and how each is decided.
 
 A claim (:class:`Claim`) names a task, a budget, a measure, two arms and the claimed direction, and whether it is
 primary; a ledger declares its claims in ``results/claims.yml`` (:func:`load_claims`), and a report of other runs
@@ -47,10 +13,15 @@ is below alpha and the difference lies on the claimed side, *contradicted* when 
 *inconclusive* otherwise; *too few runs to decide* where the arms' sizes cannot give a p below the claim's threshold
 (alpha over the family's size for a primary claim, Holm's first; alpha for an exploratory one), and *interim* while a
 claim with runs planned has fewer.
+
+Beside them, for the readings: each exploratory claim's Benjamini-Yekutieli q-value (valid under any dependence
+between the claims, which share runs), and each claim's verdict under the rule ``results/claims.yml`` first declared
+(:func:`declared_rule_verdict`: the raw-difference permutation test, Holm within a primary family, exploratory claims
+unadjusted, no test below three runs an arm), which the rule above replaced after the runs had been seen.
 """
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -59,8 +30,8 @@ import numpy as np
 import yaml
 
 from sb3_sera.experiments import stats
-from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
-from sb3_sera.experiments.records import NPZ_ERRORS, RunResult
+from sb3_sera.experiments.measures import MEASURES
+from sb3_sera.experiments.records import RunResult
 from sb3_sera.experiments.registry import SHARED_SETTINGS, shared_settings, unmatched_settings, unmatched_text
 
 #: Runs each arm needs before its interval is given (a test needs as many as can give a p below its threshold)
@@ -73,159 +44,6 @@ ALPHA = 0.05
 PRIMARY_FAMILY = "paper"
 
 
-def load_diagnostics(run: RunResult) -> dict[str, np.ndarray] | None:
-    """
-    A run's critic diagnostics (``critic_diagnostics.npz``, SAC family), or None (no record, or a damaged one); with
-    ``td_target_relative_var``, the TD target's variance over its mean square, where the run recorded the mean.
-    """
-    path = Path(run.folder) / DIAGNOSTICS_FILE
-    if not path.exists():
-        return None
-    try:
-        with np.load(path) as records:
-            diagnostics = {key: records[key] for key in records.files}
-    except NPZ_ERRORS:
-        return None
-    if "td_target_mean" in diagnostics:
-        variance, mean = diagnostics["td_target_var"], diagnostics["td_target_mean"]
-        diagnostics["td_target_relative_var"] = variance / (variance + mean**2)
-    return diagnostics
-
-
-def last_diagnostic(key: str) -> Callable[[RunResult], float | None]:
-    """A summary: the diagnostic ``key`` at the run's last evaluation (None where the run did not record it)."""
-
-    def summary(run: RunResult) -> float | None:
-        records = load_diagnostics(run)
-        if records is None or key not in records or not np.isfinite(records[key][-1]):
-            return None
-        return float(records[key][-1])
-
-    return summary
-
-
-def _last_matrix(run: RunResult, key: str) -> np.ndarray | None:
-    records = load_diagnostics(run)
-    if records is None or key not in records or not np.isfinite(records[key][-1]).all():
-        return None
-    return np.asarray(records[key][-1], dtype=float)
-
-
-def relative_disagreement(run: RunResult) -> float | None:
-    """``tr(P C P) / K`` over ``1' C 1 / K^2`` of the critics' value covariance ``C`` at the last evaluation."""
-    cov = _last_matrix(run, "critic_cov_matrix")
-    if cov is None or len(cov) < 2:
-        return None
-    k = len(cov)
-    centering = np.eye(k) - np.full((k, k), 1.0 / k)
-    ensemble_var = cov.sum() / k**2
-    return float(np.trace(centering @ cov @ centering) / k / ensemble_var) if ensemble_var > 0 else None
-
-
-def closest_pair(run: RunResult) -> float | None:
-    """The smallest ``Var(Q_i - Q_j)`` over the mean of all pairs', from the value covariance at the last evaluation."""
-    cov = _last_matrix(run, "critic_cov_matrix")
-    if cov is None or len(cov) < 3:
-        return None
-    i, j = np.triu_indices(len(cov), k=1)
-    distances = cov[i, i] + cov[j, j] - 2 * cov[i, j]
-    return float(distances.min() / distances.mean()) if distances.mean() > 0 else None
-
-
-def late_mean(key: str) -> Callable[[RunResult], float | None]:
-    """A summary: the diagnostic ``key`` averaged over the evaluations of the second half of training."""
-
-    def summary(run: RunResult) -> float | None:
-        records = load_diagnostics(run)
-        if records is None or key not in records:
-            return None
-        late = records["timesteps"] >= run.n_timesteps / 2
-        return float(np.mean(records[key][late])) if late.any() else None
-
-    return summary
-
-
-#: The TD target's ``Var(y) / mean(y^2)`` averaged over the evaluations of the second half of training
-target_relative_variance = late_mean("td_target_relative_var")
-#: The TD target's batch variance ``Var(y)`` averaged over the evaluations of the second half of training
-target_variance = late_mean("td_target_var")
-
-
-def _bias_after_start(run: RunResult) -> tuple[np.ndarray, np.ndarray] | None:
-    """Per evaluation after ``learning_starts``: the mean ``V(s0)`` and the mean discounted return ``G``."""
-    path = Path(run.folder) / BIAS_FILE
-    if not path.exists():
-        return None
-    try:
-        with np.load(path) as records:
-            steps, values, returns = records["timesteps"], records["values"], records["discounted_returns"]
-    except NPZ_ERRORS:
-        return None
-    after = steps > float(run.hyperparams.get("learning_starts", 0))
-    if not after.any():
-        return None
-    return values[after].mean(axis=1), returns[after].mean(axis=1)
-
-
-def relative_bias(run: RunResult) -> float | None:
-    """
-    The initial-state bias relative to the returns' scale, over the evaluations after ``learning_starts``:
-    ``sum_t |mean V(s0) - mean G|`` over ``sum_t |mean G|`` (a policy that earns more has larger values and larger
-    errors in the same units; a ratio of sums stays defined where a return crosses zero).
-    """
-    bias = _bias_after_start(run)
-    if bias is None or np.abs(bias[1]).sum() == 0:
-        return None
-    values, returns = bias
-    return float(np.abs(values - returns).sum() / np.abs(returns).sum())
-
-
-def abs_bias(run: RunResult) -> float | None:
-    """``|mean V(s0) - mean G|`` averaged over the evaluations after ``learning_starts``, in return units."""
-    bias = _bias_after_start(run)
-    return None if bias is None else float(np.abs(bias[0] - bias[1]).mean())
-
-
-def signed_bias(run: RunResult) -> float | None:
-    """``mean V(s0) - mean G`` averaged over the evaluations after ``learning_starts`` (below 0: underestimation)."""
-    bias = _bias_after_start(run)
-    return None if bias is None else float((bias[0] - bias[1]).mean())
-
-
-def final_return(run: RunResult) -> float | None:
-    """The run's final return (the mean of its last evaluations: :attr:`.RunResult.final_return`)."""
-    return run.final_return
-
-
-def auc(run: RunResult) -> float | None:
-    """The run's normalized AUC."""
-    return stats.normalized_auc(run.timesteps, run.returns)
-
-
-@dataclass(frozen=True)
-class Measure:
-    """A per-run summary a claim compares."""
-
-    summary: Callable[[RunResult], float | None]
-    #: What it is, for the tables
-    text: str
-    #: In the units the paper plots (True) or a scale-free form of ours (False)
-    paper_units: bool
-
-
-MEASURES: dict[str, Measure] = {
-    "final_return": Measure(final_return, "final return (mean of the last 3 evaluations)", True),
-    "auc": Measure(auc, "normalized AUC", True),
-    "abs_bias": Measure(abs_bias, "abs(V(s0) - G) after learning_starts", True),
-    "relative_bias": Measure(relative_bias, "sum abs(V(s0) - G) / sum abs(G) after learning_starts", False),
-    "target_var": Measure(target_variance, "Var(y), second half of training", True),
-    "target_relative_var": Measure(target_relative_variance, "Var(y) / mean(y^2), second half of training", False),
-    "value_corr": Measure(last_diagnostic("critic_corr"), "critics' value correlation, last evaluation", True),
-    "td_error_corr": Measure(last_diagnostic("td_error_corr"), "critics' TD-error correlation, last evaluation", False),
-    "mc_error_corr": Measure(last_diagnostic("mc_error_corr"), "critics' MC-error correlation, last evaluation", False),
-    "relative_disagreement": Measure(relative_disagreement, "relative disagreement, last evaluation", False),
-    "closest_pair": Measure(closest_pair, "closest pair, last evaluation", False),
-}
 #: The claim fields of a claims file, and which must be given
 CLAIM_FIELDS = (
     "id",
@@ -416,6 +234,12 @@ class ClaimResult:
     welch_p: float | None = None
     #: Holm-adjusted within the claim's family (primary claims), or its Benjamini-Hochberg q-value (exploratory)
     adjusted_p: float | None = None
+    #: An exploratory claim's Benjamini-Yekutieli q-value (any dependence between the claims)
+    by_q: float | None = None
+    #: The raw-difference permutation p of the rule first declared (:func:`declared_rule_verdict`)
+    declared_p: float | None = None
+    #: The verdict under the rule first declared
+    declared_verdict: str = ""
     verdict: str = "waiting for runs"
     #: Why there is no test, or which settings group was used
     note: str = ""
@@ -464,6 +288,7 @@ def evaluate(claims: Sequence[Claim], groups: Sequence[Any], alpha: float = ALPH
         _test(result, alpha / sizes[claim.family] if claim.primary else alpha)
     _withhold(results)
     _adjust(results)
+    _declared_rule(results, alpha)
     for result in results:
         if result.adjusted_p is None or result.difference is None:
             continue
@@ -518,10 +343,42 @@ def _adjust(results: Sequence[ClaimResult]) -> None:
                 result.adjusted_p = p_adjusted
     exploratory = [result for result in results if not result.claim.primary]
     if exploratory:
-        q_values = stats.benjamini_hochberg([1.0 if r.p_value is None else r.p_value for r in exploratory])
-        for result, q in zip(exploratory, q_values, strict=True):
+        p_values = [1.0 if r.p_value is None else r.p_value for r in exploratory]
+        q_values = zip(stats.benjamini_hochberg(p_values), stats.benjamini_yekutieli(p_values), strict=True)
+        for result, (q, by_q) in zip(exploratory, q_values, strict=True):
             if result.p_value is not None:
-                result.adjusted_p = q
+                result.adjusted_p, result.by_q = q, by_q
+
+
+#: The fewest runs an arm the rule first declared tested
+DECLARED_MIN_RUNS = 3
+
+
+def _declared_rule(results: Sequence[ClaimResult], alpha: float) -> None:
+    """Each tested claim's verdict under the rule first declared (:func:`declared_rule_verdict`)."""
+    for result in results:
+        if result.p_value is not None and min(len(result.arm_values), len(result.baseline_values)) >= DECLARED_MIN_RUNS:
+            result.declared_p = stats.raw_permutation_p_value(result.arm_values, result.baseline_values)
+    for family in families(results):
+        tested = [result for result in family if result.declared_p is not None]
+        holm = stats.holm_adjusted([result.declared_p for result in tested if result.declared_p is not None])
+        for result, adjusted in zip(tested, holm, strict=True):
+            result.declared_verdict = declared_rule_verdict(result, adjusted, alpha)
+    for result in results:
+        if not result.claim.primary and result.declared_p is not None:
+            result.declared_verdict = declared_rule_verdict(result, result.declared_p, alpha)
+
+
+def declared_rule_verdict(result: ClaimResult, p_value: float, alpha: float = ALPHA) -> str:
+    """
+    The verdict of the rule ``results/claims.yml`` first declared, from ``p_value``: the raw-difference permutation
+    test's p (:func:`~sb3_sera.experiments.stats.raw_permutation_p_value`), Holm-adjusted over the family's tested
+    claims for a primary claim, unadjusted for an exploratory one; supported below alpha on the claimed side,
+    contradicted below alpha on the other, inconclusive otherwise.
+    """
+    assert result.difference is not None
+    claimed_side = result.difference < 0 if result.claim.direction == "lower" else result.difference > 0
+    return ("supported" if claimed_side else "contradicted") if p_value < alpha else "inconclusive"
 
 
 def families(results: Sequence[ClaimResult]) -> list[list[ClaimResult]]:
@@ -531,128 +388,3 @@ def families(results: Sequence[ClaimResult]) -> list[list[ClaimResult]]:
         if result.claim.primary:
             grouped.setdefault(result.claim.family, []).append(result)
     return list(grouped.values())
-
-
-def _format(value: float | None) -> str:
-    if value is None:
-        return ""
-    return f"{value:.3g}" if abs(value) < 1000 else f"{value:.0f}"
-
-
-def _p_text(value: float | None) -> str:
-    return "" if value is None else f"{value:.4f}" if value >= 0.0001 else "< 0.0001"
-
-
-def claims_table(results: Sequence[ClaimResult], primary: bool) -> list[str]:
-    """
-    A Markdown table of ``results``: each claim's difference with its interval, Welch's and the studentized
-    permutation p, and the p its verdict reads (Holm-adjusted for primary claims, the q-value for exploratory ones).
-    """
-    if not results:
-        return []
-    adjusted = "Holm p" if primary else "BH q"
-    lines = [
-        "| claim | source | measure (per run) | units | SERA vs | n | SERA mean | baseline mean "
-        f"| difference [95% Welch CI] | Welch p | permutation p | {adjusted} | verdict |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
-    ]
-    for result in results:
-        claim, measure = result.claim, MEASURES[result.claim.measure]
-        interval = (
-            f"{_format(result.difference)} [{_format(result.low)}, {_format(result.high)}]"
-            if result.low is not None
-            else _format(result.difference)
-        )
-        shown = not result.withheld
-        arm_mean = _format(float(result.arm_values.mean())) if shown and len(result.arm_values) else ""
-        base_mean = _format(float(result.baseline_values.mean())) if shown and len(result.baseline_values) else ""
-        verdict = result.verdict + (f" ({result.note})" if result.note else "")
-        lines.append(
-            f"| {claim.id}: SERA {claim.direction} | {claim.source} | {measure.text} "
-            f"| {'paper' if measure.paper_units else 'scale-free'} | {claim.baseline} "
-            f"| {len(result.arm_values)} vs {len(result.baseline_values)} | {arm_mean} | {base_mean} | {interval} "
-            f"| {_p_text(result.welch_p)} | {_p_text(result.permutation_p)} | {_p_text(result.adjusted_p)} | {verdict} |"
-        )
-    return lines
-
-
-def family_sizes(results: Sequence[ClaimResult]) -> dict[str, int]:
-    """How many primary claims each Holm family of ``results`` holds."""
-    return {family[0].claim.family: len(family) for family in families(results)}
-
-
-def claims_legend(sizes: dict[str, int]) -> str:
-    """What the claims tables' columns and verdicts are; ``sizes``: each primary family's number of claims."""
-    family = (
-        " Primary claims are Holm-adjusted within their family ("
-        + ", ".join(f"'{name}': {size}" for name, size in sizes.items())
-        + " claims; a primary claim not yet tested counts with p = 1); a claim with runs planned is interim, and not "
-        "decided, until each arm has them."
-        if sizes
-        else ""
-    )
-    return (
-        "Difference: SERA's mean minus the baseline's over per-run measures, with its 95% Welch t-interval. Welch p: "
-        "Welch's two-sided t-test (below 0.05 exactly when the interval excludes 0). Permutation p: the studentized "
-        "permutation test, Welch's t statistic over every split of the pooled runs (200,000 random splits where there "
-        "are more). A claim is decided on the larger of the two, so that no verdict points where its interval does "
-        "not, adjusted for multiplicity: Holm within a primary family, Benjamini-Hochberg q-values over all the "
-        "exploratory claims (untested ones count with p = 1). Units: 'paper' is the measure the paper plots, "
-        "'scale-free' our form of it normalised by the returns' or targets' scale. Verdict at alpha "
-        f"{ALPHA}, from the adjusted p: supported when below alpha with the difference on the claimed side, "
-        "contradicted when below alpha on the other side, inconclusive otherwise; too few runs to decide where the "
-        "arms' sizes cannot give a p below the claim's threshold (alpha over its family's size for a primary claim, "
-        f"alpha for an exploratory one). Only arms whose shared settings match are compared.{family} See "
-        "`sb3_sera/experiments/claims.py` for each measure."
-    )
-
-
-def claims_section(results: Sequence[ClaimResult], sizes: dict[str, int] | None = None) -> list[str]:
-    """
-    The primary claims' tables, one a Holm family, then the exploratory claims' (labelled so), and the legend;
-    ``sizes``: each family's number of claims (default: as many as ``results`` hold).
-    """
-    exploratory = [r for r in results if not r.claim.primary]
-    lines: list[str] = []
-    for family in families(results):
-        lines += [
-            f"Primary claims, family '{family[0].claim.family}' (Holm-adjusted within the family):",
-            "",
-            *claims_table(family, True),
-            "",
-        ]
-    if exploratory:
-        lines += [
-            "Exploratory claims (Benjamini-Hochberg q-values over all of them):",
-            "",
-            *claims_table(exploratory, False),
-            "",
-        ]
-    return [*lines, claims_legend(family_sizes(results) if sizes is None else sizes)] if lines else []
-
-
-def bias_lines(groups: Sequence[Any]) -> list[str]:
-    """Per group, the initial-state bias in the paper's signed form and in magnitude, after ``learning_starts``."""
-    rows = []
-    for group in groups:
-        signed = [v for v in map(signed_bias, group.runs) if v is not None]
-        if not signed:
-            continue
-        magnitude = [v for v in map(abs_bias, group.runs) if v is not None]
-        relative = [v for v in map(relative_bias, group.runs) if v is not None]
-        spread = stats.sample_std(signed)
-        rows.append(
-            f"| {group.label} | {len(signed)} | {np.mean(signed):.1f} ± {'n/a' if np.isnan(spread) else f'{spread:.1f}'} "
-            f"| {np.mean(magnitude):.1f} | {np.mean(relative):.3f} | {sum(v < 0 for v in signed)} of {len(signed)} |"
-        )
-    if not rows:
-        return []
-    return [
-        "| variant | n | V(s0) - G (mean ± std) | abs(V(s0) - G) | relative bias | runs underestimating |",
-        "|---|---|---|---|---|---|",
-        *rows,
-        "",
-        "Initial-state bias per run, averaged over the evaluations after learning_starts: V(s0) - G is what the paper's "
-        "Fig. 4a plots (below 0: the critics underestimate the discounted return G of the evaluation episodes), its "
-        "magnitude in return units, and the magnitude over the returns' scale.",
-    ]

@@ -26,15 +26,8 @@ from typing import Any
 import numpy as np
 import yaml
 
-from sb3_sera.experiments.claims import (
-    Claim,
-    ClaimResult,
-    claims_section,
-    default_claims,
-    evaluate,
-    family_sizes,
-    load_claims,
-)
+from sb3_sera.experiments.claims import Claim, ClaimResult, default_claims, evaluate, load_claims
+from sb3_sera.experiments.claims_text import claims_section, family_sizes
 from sb3_sera.experiments.declared import seen_before_lines
 from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sb3_sera.experiments.identity import identity_lines, load_code_hashes

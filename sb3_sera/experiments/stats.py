@@ -127,6 +127,28 @@ def studentized_permutation_p_value(sample: ArrayLike, baseline: ArrayLike, perm
     return float((np.count_nonzero(at_least) + extra) / (statistics.size + extra))
 
 
+def raw_permutation_p_value(sample: ArrayLike, baseline: ArrayLike, permutations: int = PERMUTATIONS) -> float:
+    """
+    Two-sided permutation test of the raw difference of means, the test ``results/claims.yml`` first declared: the
+    share of the pooled runs' splits whose difference of means is at least as far from 0 as the observed one (the
+    splits of :func:`studentized_permutation_p_value`). Kept to report the verdicts of the rule first declared beside
+    those of the rule that replaced it (its size drifts where the arms' spreads differ).
+
+    :raises ValueError: with an empty side
+    """
+    x, y = np.asarray(sample, dtype=float), np.asarray(baseline, dtype=float)
+    if x.size == 0 or y.size == 0:
+        raise ValueError(f"a permutation test needs runs on both sides, got {x.size} and {y.size}")
+    pooled = np.concatenate([x, y])
+    n, k = pooled.size, x.size
+    chosen, extra = _splits(n, k, permutations)
+    sums = pooled[chosen].sum(axis=1)
+    differences = np.abs(sums / k - (pooled.sum() - sums) / (n - k))
+    # Differences that equal the observed one up to rounding count as at least as far
+    observed = abs(x.mean() - y.mean()) - 1e-9 * max(1.0, float(np.abs(pooled).max()))
+    return float((np.count_nonzero(differences >= observed) + extra) / (sums.size + extra))
+
+
 def smallest_p_value(n_sample: int, n_baseline: int, permutations: int = PERMUTATIONS) -> float:
     """
     The smallest p-value :func:`studentized_permutation_p_value` can give at these sizes, whatever the runs: one
@@ -223,6 +245,16 @@ def benjamini_hochberg(p_values: Sequence[float]) -> list[float]:
         running = min(running, m / rank * p[index])
         q[index] = running
     return [float(value) for value in q]
+
+
+def benjamini_yekutieli(p_values: Sequence[float]) -> list[float]:
+    """
+    Benjamini and Yekutieli's q-values: Benjamini-Hochberg's times ``c(m) = 1 + 1/2 + ... + 1/m``, capped at 1.
+    Declaring the claims whose q is below alpha keeps the expected share of false discoveries at most alpha whatever
+    the dependence between the tests (claims that share runs, or come in near-duplicate pairs).
+    """
+    factor = sum(1 / rank for rank in range(1, len(p_values) + 1))
+    return [min(1.0, factor * q) for q in benjamini_hochberg(p_values)]
 
 
 def holm_adjusted(p_values: Sequence[float]) -> list[float]:

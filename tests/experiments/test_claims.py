@@ -10,7 +10,7 @@ import pytest
 import yaml
 from scipy import stats
 
-from sb3_sera.experiments import claims
+from sb3_sera.experiments import claims, claims_text, measures
 from sb3_sera.experiments.declared import declaration, seen_before_lines
 from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sb3_sera.experiments.report import group_runs, load_runs
@@ -54,15 +54,15 @@ def test_claims_by_hand(tmp_path):
         _claim_run(tmp_path, "sera_nolr", seed, corr, [0.0, 10.0, 30.0])
     runs, _, decided = _decided(tmp_path)
     run = next(run for run in runs if run.variant == "serasac")
-    assert claims.relative_bias(run) == pytest.approx(0.2)
+    assert measures.relative_bias(run) == pytest.approx(0.2)
     # After learning_starts (steps 200, 300) the biases are 3 and -1: magnitude (3 + 1) / 2, signed (3 - 1) / 2
-    assert claims.abs_bias(run) == pytest.approx(2.0) and claims.signed_bias(run) == pytest.approx(1.0)
+    assert measures.abs_bias(run) == pytest.approx(2.0) and measures.signed_bias(run) == pytest.approx(1.0)
     # Second half (steps >= 150): variances 4 and 9 over mean squares 4 + 2^2 and 9 + 6^2 -> (0.5 + 0.2) / 2 = 0.35;
     # the raw variances' mean is 6.5
-    assert claims.target_relative_variance(run) == pytest.approx(0.35)
-    assert claims.target_variance(run) == pytest.approx(6.5)
+    assert measures.target_relative_variance(run) == pytest.approx(0.35)
+    assert measures.target_variance(run) == pytest.approx(6.5)
     # The final return is the mean of the last three evaluations: (0 + 10 + 20) / 3
-    assert claims.final_return(run) == pytest.approx(10.0)
+    assert measures.final_return(run) == pytest.approx(10.0)
     by_id = {result.claim.id: result for result in decided}
     mc = by_id["mc_error_corr-sera_nolr"]
     # SERA 0.3 against 0.7: -0.4 with Welch's interval (variances 2/300 a side, df 6); the sides do not overlap, so
@@ -83,7 +83,7 @@ def test_claims_by_hand(tmp_path):
     mc, auc = _decided(tmp_path, pair)[2]
     assert mc.adjusted_p == pytest.approx(2 / 70) and mc.verdict == "supported"
     assert (auc.difference, auc.low, auc.high) == (-2.5, -2.5, -2.5) and auc.verdict == "contradicted"
-    lines = claims.claims_section([mc, auc])
+    lines = claims_text.claims_section([mc, auc])
     assert lines[0].startswith("Exploratory claims") and any("| contradicted |" in line for line in lines)
     # Three runs a side: the smallest permutation p is 2/20, never below 0.05: no test
     for folder in tmp_path.glob("*/HalfCheetah-v5_4"):
@@ -96,6 +96,30 @@ def test_claims_by_hand(tmp_path):
         shutil.rmtree(folder)
     decided = _decided(tmp_path)[2]
     assert all(r.verdict == "too few runs to decide (fewer than 2 an arm)" and r.low is None for r in decided)
+
+
+def test_beside_each_verdict_the_first_declared_rules_and_benjamini_yekutieli(tmp_path):
+    # Every SERA run above every SAC run, one of them far above: the raw difference's permutation p is 2/252, Welch's
+    # (which decides with the studentized one) 0.28
+    for seed, (arm, baseline) in enumerate(zip([10, 11, 12, 13, 200], [0, 1, 2, 3, 4], strict=True)):
+        _claim_run(tmp_path, "serasac", seed, 0.5, [float(arm)] * 3)
+        _claim_run(tmp_path, "sac", seed, 0.5, [float(baseline)] * 3)
+    declared = [
+        claims.Claim("return", "HalfCheetah-v5", 300, "final_return", "serasac", "sac", "higher"),
+        claims.Claim("bias", "HalfCheetah-v5", 300, "abs_bias", "serasac", "sac", "lower"),
+    ]
+    result, bias = _decided(tmp_path, declared)[2]
+    assert result.verdict == "inconclusive" and result.declared_p == pytest.approx(2 / 252)
+    assert result.declared_verdict == "supported"
+    # Equal biases: the same verdict under both rules; BY's q is BH's times 1 + 1/2
+    assert bias.declared_verdict == bias.verdict == "inconclusive"
+    assert result.by_q == pytest.approx(min(1.0, result.adjusted_p * 1.5))
+    text = "\n".join(claims_text.claims_section([result, bias]))
+    assert "1 of the 2 tested claims read the same, and these differently:" in text
+    assert "- return: supported under the first rule (raw permutation p 0.0079, unadjusted), inconclusive under" in text
+    # A verdict that stands on BH alone says so
+    result.verdict, result.by_q = "supported", 0.08
+    assert claims_text.rests_on_bh_alone(result) and "(BH alone: BY q 0.0800)" in claims_text.claims_table([result], False)[2]
 
 
 def test_declared_claims_are_one_holm_family_and_need_matched_settings(tmp_path):
@@ -115,7 +139,7 @@ def test_declared_claims_are_one_holm_family_and_need_matched_settings(tmp_path)
     # A family of one: decided at 0.05 (Holm's adjustment by hand: tests/experiments/test_stats.py)
     corr = _decided(tmp_path, declared[:1])[2][0]
     assert corr.p_value == corr.adjusted_p == pytest.approx(2 / 70) and corr.verdict == "supported"
-    lines = claims.claims_section(decided)
+    lines = claims_text.claims_section(decided)
     assert lines[0].startswith("Primary claims, family 'paper'") and "('paper': 3 claims;" in lines[-1]
     # A baseline trained with another learning_starts is no comparison: the claim says which setting differs
     for folder in (tmp_path / "sera_nolr").iterdir():
@@ -158,7 +182,7 @@ def test_seeds_families_and_planned_runs(tmp_path):
     assert late.verdict == "inconclusive"
     # As many runs as planned or more: decided as any other claim
     assert planned.p_value is not None and planned.verdict == "inconclusive"
-    lines = claims.claims_section([early, every])
+    lines = claims_text.claims_section([early, every])
     assert lines[0] == "Primary claims, family 'paper' (Holm-adjusted within the family):"
     assert "Primary claims, family 'b' (Holm-adjusted within the family):" in lines
     assert "('paper': 1, 'b': 1 claims;" in lines[-1]
@@ -178,7 +202,8 @@ def test_seeds_families_and_planned_runs(tmp_path):
     assert pooled.verdict == "withheld while short is interim" and pooled.withheld
     assert len(pooled.arm_values) == 1 and pooled.difference is pooled.p_value is pooled.adjusted_p is None
     assert not other_seeds.withheld and not other_task.withheld
-    rows = [line for line in claims.claims_table([result, pooled], False) if line.startswith("| short") or "pooled" in line]
+    table = claims_text.claims_table([result, pooled], False)
+    rows = [line for line in table if line.startswith("| short") or "pooled" in line]
     assert [row.split(" | ")[5:9] for row in rows] == [["8 vs 8", "", "", ""], ["1 vs 1", "", "", ""]]
 
 
@@ -187,7 +212,7 @@ def test_the_ledger_declares_its_claims():
     primary = [claim for claim in declared if claim.primary]
     assert [claim.family for claim in primary].count("paper") == 6
     assert {claim.task for claim in primary} == {"sb3_sera/HalfCheetah-6x1-v0", "sb3_sera/SimpleSpread-v0"}
-    assert all(claims.MEASURES[claim.measure].paper_units for claim in primary)
+    assert all(measures.MEASURES[claim.measure].paper_units for claim in primary)
     # The confirmatory test of SERA's weighting: a family of its own, on the new seeds alone, 20 runs an arm planned
     confirmatory = [claim for claim in primary if claim.family == "aggregation"]
     assert [(c.arm, c.baseline, c.measure, c.seeds, c.planned) for c in confirmatory] == [
@@ -299,12 +324,12 @@ def test_disagreement_measures_by_hand(tmp_path):
     cov = np.eye(3) + 0.5
     np.savez(folder / DIAGNOSTICS_FILE, timesteps=np.array([1]), critic_cov_matrix=cov[None])
     # Own part about the ensemble mean: (1 - 1/3) = 2/3; ensemble mean's variance: (3 * 1.5 + 6 * 0.5) / 9 = 5/6
-    assert claims.relative_disagreement(run) == pytest.approx((2 / 3) / (5 / 6))
-    assert claims.closest_pair(run) == pytest.approx(1.0)
+    assert measures.relative_disagreement(run) == pytest.approx((2 / 3) / (5 / 6))
+    assert measures.closest_pair(run) == pytest.approx(1.0)
     # Critics 0 and 1 near duplicates: Var(Q0 - Q1) = 1 + 1 - 2 * 0.99 = 0.02 against 1.0 for the other two pairs
     cov = np.array([[1.0, 0.99, 0.5], [0.99, 1.0, 0.5], [0.5, 0.5, 1.0]])
     np.savez(folder / DIAGNOSTICS_FILE, timesteps=np.array([1]), critic_cov_matrix=cov[None])
-    assert claims.closest_pair(run) == pytest.approx(0.02 / ((0.02 + 1.0 + 1.0) / 3))
+    assert measures.closest_pair(run) == pytest.approx(0.02 / ((0.02 + 1.0 + 1.0) / 3))
 
 
 def test_no_verdict_of_the_ledger_points_where_its_interval_does_not():

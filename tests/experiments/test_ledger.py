@@ -9,7 +9,8 @@ import pytest
 import yaml
 
 from sb3_sera.experiments import bench, ledger
-from sb3_sera.experiments.claims import claims_section, evaluate
+from sb3_sera.experiments.claims import evaluate
+from sb3_sera.experiments.claims_text import claims_section
 from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sb3_sera.experiments.records import read_record
 from sb3_sera.experiments.report import group_runs, load_runs

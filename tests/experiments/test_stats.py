@@ -6,12 +6,14 @@ from scipy import stats
 
 from sb3_sera.experiments.stats import (
     benjamini_hochberg,
+    benjamini_yekutieli,
     decision_p_value,
     holm_adjusted,
     improvement_percent,
     iqm,
     min_max_normalized,
     normalized_auc,
+    raw_permutation_p_value,
     runs_for_power,
     sample_std,
     smallest_p_value,
@@ -210,6 +212,23 @@ def test_benjamini_hochberg_by_hand():
     # 0.0533, 0.04
     assert benjamini_hochberg([0.01, 0.04, 0.03, 0.2]) == pytest.approx([0.04, 0.16 / 3, 0.16 / 3, 0.2])
     assert benjamini_hochberg([0.5]) == [0.5] and benjamini_hochberg([]) == []
+
+
+def test_benjamini_yekutieli_by_hand():
+    # BH's q-values times 1 + 1/2 + 1/3 + 1/4 = 25/12, capped at 1
+    expected = [0.04 * 25 / 12, 0.16 / 3 * 25 / 12, 0.16 / 3 * 25 / 12, 1.0]
+    assert benjamini_yekutieli([0.01, 0.04, 0.03, 0.5]) == pytest.approx(expected)
+    assert benjamini_yekutieli([0.02]) == [0.02] and benjamini_yekutieli([]) == []
+
+
+def test_the_first_declared_raw_permutation_test_by_hand():
+    # 0, 0 against 1, 1: of the 6 splits two put both ones on a side (difference 1, as observed), four mix them (0)
+    assert raw_permutation_p_value([0, 0], [1, 1]) == pytest.approx(1 / 3)
+    # Every arm run above every baseline run: only the observed split and its mirror are as extreme, 2 of 252, where
+    # Welch's test, whose interval the outlier's spread widens, is far from 0.05
+    arm, baseline = [10, 11, 12, 13, 200], [0, 1, 2, 3, 4]
+    assert raw_permutation_p_value(arm, baseline) == pytest.approx(2 / 252)
+    assert welch_p_value(arm, baseline) > 0.25
 
 
 def test_holm_by_hand():

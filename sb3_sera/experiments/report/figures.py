@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from sb3_sera.experiments import stats
-from sb3_sera.experiments.claims import load_diagnostics
+from sb3_sera.experiments.measures import load_diagnostics
 from sb3_sera.experiments.report.groups import RunGroup
 from sb3_sera.experiments.report.tables import MIN_RUNS
 

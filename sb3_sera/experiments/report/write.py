@@ -9,15 +9,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from sb3_sera.experiments import stats
-from sb3_sera.experiments.claims import (
-    Claim,
-    ClaimResult,
-    bias_lines,
-    claims_section,
-    default_claims,
-    evaluate,
-    family_sizes,
-)
+from sb3_sera.experiments.claims import Claim, ClaimResult, default_claims, evaluate
+from sb3_sera.experiments.claims_text import bias_lines, claims_section, family_sizes
 from sb3_sera.experiments.identity import identity_lines
 from sb3_sera.experiments.records import RunResult, env_name
 from sb3_sera.experiments.report.aggregate import aggregate_section
