@@ -34,6 +34,7 @@ from sb3_sera.experiments.identity import identity_lines, load_code_hashes
 from sb3_sera.experiments.interim import held_back
 from sb3_sera.experiments.records import NPZ_ERRORS, RESULT_FILE, RunResult, env_name, load_result, read_record, run_ids
 from sb3_sera.experiments.report import Skipped, group_runs, load_runs, run_folders, section_table, write_report
+from sb3_sera.experiments.report.tables import resumed_lines
 from sb3_sera.experiments.report.write import section_claims
 
 #: The ledger's folder, at the top of the repository
@@ -307,6 +308,8 @@ def results_block(ledger: str | Path = LEDGER_DIR, reps: int = LEDGER_REPS) -> s
             *section_table(section, reps),
             "",
         ]
+        resumed = resumed_lines(section)
+        lines += [*resumed, ""] if resumed else []
         identity = identity_lines(section, hashes) if hashes is not None else []
         if identity:
             lines += ["Code identity of groups run at several commits (`results/code_hashes.yml`):", "", *identity, ""]

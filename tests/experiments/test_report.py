@@ -11,7 +11,10 @@ from scipy import stats as scipy_stats
 from sb3_sera.experiments import stats
 from sb3_sera.experiments.cli import main
 from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
+from sb3_sera.experiments.records import RunResult
 from sb3_sera.experiments.report import aligned, group_runs, load_runs, report_roots, write_report
+from sb3_sera.experiments.report.groups import RunGroup
+from sb3_sera.experiments.report.tables import resumed_lines
 
 TASK = "sb3_sera/HalfCheetah-6x1-v0"
 REPS = 400
@@ -330,3 +333,21 @@ def test_the_report_prints_shared_settings_and_marks_undeclared_differences(tmp_
     report = report_roots([root], tmp_path / "report", overwrite=True, reps=REPS).read_text()
     assert "Declared difference (the comparison studies it): masac differs from serasac in batch_size" in report
     assert table_row(report, "masac")[6].startswith("1.00 [")
+
+
+def test_resumed_runs_are_listed_with_their_step_and_how_it_is_known():
+    never = RunResult("serasac", "serasac", "Pendulum-v1", 0, 600, 1.0, 0.0)
+    resumed = RunResult("serasac", "serasac", "Pendulum-v1", 3, 600, 1.0, 0.0, resumes=[{"from_step": 10000}])
+    rebuilt = {"from_step": 20000, "reconstructed": "from the monitor's clock"}
+    other = RunResult("sac", "sac", "Pendulum-v1", 1, 600, 1.0, 0.0, resumes=[rebuilt])
+    groups = [
+        RunGroup("serasac", "Pendulum-v1", 600, {}, [resumed, never], "serasac"),
+        RunGroup("sac", "Pendulum-v1", 600, {}, [other], "sac"),
+    ]
+    assert resumed_lines(groups) == [
+        "Runs resumed from a checkpoint:",
+        "",
+        "- serasac, seed 3: resumed from step 10,000",
+        "- sac, seed 1: resumed from step 20,000; from the monitor's clock",
+    ]
+    assert resumed_lines([]) == []

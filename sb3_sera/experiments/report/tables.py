@@ -169,3 +169,14 @@ def section_notes(groups: Sequence[RunGroup], all_groups: Sequence[RunGroup]) ->
             if repeated:
                 notes.append(f"- {group.label}: seed(s) {repeated} appear more than once (each run counts).")
     return notes
+
+
+def resumed_lines(groups: Sequence[RunGroup]) -> list[str]:
+    """The runs of ``groups`` resumed from a checkpoint, each with the steps it resumed from (and how that is known)."""
+    lines = []
+    for group in groups:
+        for run in sorted(group.runs, key=lambda run: run.seed):
+            for resume in run.resumes:
+                how = f"; {resume['reconstructed']}" if resume.get("reconstructed") else ""
+                lines.append(f"- {group.label}, seed {run.seed}: resumed from step {resume['from_step']:,}{how}")
+    return ["Runs resumed from a checkpoint:", "", *lines] if lines else []
