@@ -11,7 +11,7 @@ from pathlib import Path
 import yaml
 
 from sb3_sera.common.mujoco_log import route_mujoco_warnings
-from sb3_sera.experiments import bench, compare, ledger, report, stats, zoo
+from sb3_sera.experiments import bench, compare, intake, ledger, report, stats, zoo
 from sb3_sera.experiments.backends import Interrupted, default_threads
 from sb3_sera.experiments.checkpoint import CHECKPOINT_FREQ
 from sb3_sera.experiments.records import RunResult, env_name
@@ -87,7 +87,7 @@ def _report(args: argparse.Namespace) -> None:
 
 
 def _ledger_add(args: argparse.Namespace) -> None:
-    outcome = ledger.add_runs(args.sources, args.ledger, unclaimed=args.unclaimed)
+    outcome = intake.add_runs(args.sources, args.ledger, unclaimed=args.unclaimed)
     for folder in outcome.added:
         enters = outcome.enters.get(folder) or []
         print(f"added {folder}" + (f": enters {', '.join(enters)}" if enters else ": enters no declared claim"))

@@ -17,6 +17,12 @@ from sb3_sera.experiments.records import RunResult, read_record
 
 #: The ledger's table of code hashes, in its folder
 CODE_HASHES_FILE = "code_hashes.yml"
+#: What the hash of a configuration covers, and what it does not
+IDENTITY_CHECK = (
+    "each configuration's parameters, evaluations and records after a seeded run of 2,300 steps at learning_starts "
+    "256 with a 10,000-transition buffer, at each commit; it reaches neither the runs' own learning_starts nor a "
+    "checkpoint or a resume, and cannot tell settings apart that only those reach"
+)
 
 
 def configuration_key(variant: str, env_id: str, hyperparams: dict[str, Any]) -> str:
@@ -42,8 +48,9 @@ def load_code_hashes(ledger: str | Path) -> dict[str, dict[str, str]] | None:
 
 def identity_lines(groups: Sequence[Any], hashes: dict[str, dict[str, str]]) -> list[str]:
     """
-    Per group whose runs come from more than one commit: whether their code trains the same (one hash), differs
-    (named per commit), or cannot be told (a commit not hashed, or a run made from a modified tree).
+    Per group whose runs come from more than one commit: whether the check's short run hashes the same at each
+    (:data:`IDENTITY_CHECK` says what it covers), differs (named per commit), or cannot be told (a commit not hashed,
+    or a run made from a modified tree).
     """
     lines = []
     for group in groups:
@@ -59,11 +66,11 @@ def identity_lines(groups: Sequence[Any], hashes: dict[str, dict[str, str]]) -> 
         unknown = [c[:7] for c, value in found.items() if value is None]
         dirty = [c[:7] for c, clean in by_commit if not clean]
         if unknown:
-            verdict = f"not hashed at {', '.join(unknown)}: whether their code trains the same is not known"
+            verdict = f"not hashed at {', '.join(unknown)}: whether the check's run hashes the same is not known"
         elif len(set(found.values())) > 1:
-            verdict = "their code trains DIFFERENTLY: " + ", ".join(f"{c[:7]} {h}" for c, h in found.items())
+            verdict = "the check's run hashes DIFFERENTLY: " + ", ".join(f"{c[:7]} {h}" for c, h in found.items())
         else:
-            verdict = f"their code trains the same (hash {next(iter(found.values()))})"
+            verdict = f"the check's run hashes the same at each ({next(iter(found.values()))})"
         if dirty:
             verdict += f"; the tree at {', '.join(dirty)} was modified, which no hash of the commit covers"
         lines.append(f"- {group.label}: runs {runs_at}; {verdict}.")

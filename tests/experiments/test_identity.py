@@ -22,9 +22,9 @@ def test_groups_from_several_commits_say_whether_their_code_trains_the_same(tmp_
     assert key.startswith("serasac sb3_sera/HalfCheetah-6x1-v0 ")
     # One commit's runs (masac) need no hash; serasac's two commits are compared
     (line,) = identity_lines(groups, {"a" * 40: {key: "h1"}, "b" * 40: {key: "h1"}})
-    assert line == "- serasac: runs 1 at aaaaaaa, 1 at bbbbbbb; their code trains the same (hash h1)."
+    assert line == "- serasac: runs 1 at aaaaaaa, 1 at bbbbbbb; the check's run hashes the same at each (h1)."
     (line,) = identity_lines(groups, {"a" * 40: {key: "h1"}, "b" * 40: {key: "h2"}})
-    assert "their code trains DIFFERENTLY: aaaaaaa h1, bbbbbbb h2" in line
+    assert "the check's run hashes DIFFERENTLY: aaaaaaa h1, bbbbbbb h2" in line
     (line,) = identity_lines(groups, {"a" * 40: {key: "h1"}})
     assert "not hashed at bbbbbbb" in line
     # A run made from a modified tree is named: no hash of its commit covers it

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import yaml
 
-from sb3_sera.experiments import bench, ledger
+from sb3_sera.experiments import bench, intake, ledger
 from sb3_sera.experiments.claims import evaluate
 from sb3_sera.experiments.claims_text import claims_section
 from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
@@ -43,12 +43,12 @@ def test_runs_record_their_commit_and_no_absolute_path(bench_out):
     args = read_record(next(bench_out.glob("serasac/*/*/args.yml")))
     assert len(args["git_commit"]) == 40 and isinstance(args["git_clean"], bool)
     assert args["hyperparams_source"] == "hyperparams/serasac.yml:Pendulum-v1"
-    assert not ledger._absolute_paths(args)
+    assert not intake._absolute_paths(args)
 
 
 def test_add_copies_records_only_and_refuses_duplicates(bench_out, tmp_path):
     results = tmp_path / "results"
-    outcome = ledger.add_runs([bench_out], results)
+    outcome = intake.add_runs([bench_out], results)
     assert sorted(path.relative_to(results).as_posix() for path in outcome.added) == [
         "sac/Pendulum-v1_1",
         "serasac/Pendulum-v1_1",
@@ -62,7 +62,7 @@ def test_add_copies_records_only_and_refuses_duplicates(bench_out, tmp_path):
     runs, skipped = load_runs([results])
     assert len(runs) == 2 and not skipped
     # The same runs again: refused, nothing replaced
-    again = ledger.add_runs([bench_out], results)
+    again = intake.add_runs([bench_out], results)
     assert not again.added
     assert [s.reason for s in again.refused] == [
         "the ledger already has this run (same algorithm, variant, task, budget, settings and seed)"
@@ -115,27 +115,27 @@ def _copy_run(bench_out: Path, tmp_path: Path, change) -> Path:
     ids=["unfinished", "no-commit", "absolute-path", "half-written-args", "truncated-evaluations", "truncated-bias", "short"],
 )
 def test_add_refuses_what_cannot_be_trusted(bench_out, tmp_path, change, reason):
-    outcome = ledger.add_runs([_copy_run(bench_out, tmp_path, change)], tmp_path / "results")
+    outcome = intake.add_runs([_copy_run(bench_out, tmp_path, change)], tmp_path / "results")
     assert not outcome.added and reason in outcome.refused[0].reason
     assert not (tmp_path / "results").exists() or not list((tmp_path / "results").rglob("*.npz"))
 
 
 def test_a_new_seed_gets_the_next_id(bench_out, tmp_path):
     results = tmp_path / "results"
-    ledger.add_runs([bench_out], results)
+    intake.add_runs([bench_out], results)
 
     def reseed(run: Path) -> None:
         args = read_record(run / "Pendulum-v1" / "args.yml")
         (run / "Pendulum-v1" / "args.yml").write_text(yaml.safe_dump({**args, "seed": 7}))
 
-    outcome = ledger.add_runs([_copy_run(bench_out, tmp_path, reseed)], results)
+    outcome = intake.add_runs([_copy_run(bench_out, tmp_path, reseed)], results)
     assert [path.name for path in outcome.added] == ["Pendulum-v1_2"]
     assert read_record(results / "serasac/Pendulum-v1_1/Pendulum-v1/args.yml")["seed"] == 0
 
 
 def test_report_regenerates_the_results_page_the_readme_headline_and_the_report(bench_out, tmp_path, sb3_sera):
     results = tmp_path / "results"
-    ledger.add_runs([bench_out], results)
+    intake.add_runs([bench_out], results)
     docs = tmp_path / "docs"
     readme = tmp_path / "README.md"
     readme.write_text(f"# Title\n\nBefore.\n\n{ledger.BEGIN}\nstale\n{ledger.END}\n\nAfter.\n")
@@ -219,7 +219,7 @@ def test_add_is_all_or_nothing_and_names_each_refusal(bench_out, tmp_path, monke
     source = _copy_run(bench_out, tmp_path, lambda run: (run / "Pendulum-v1" / "config.yml").write_text("- [x"))
     shutil.copytree(bench_out / "sac", source / "sac")
     results = tmp_path / "results"
-    outcome = ledger.add_runs([source], results)
+    outcome = intake.add_runs([source], results)
     assert [path.relative_to(results).as_posix() for path in outcome.added] == ["sac/Pendulum-v1_1"]
     assert "Pendulum-v1/config.yml is unreadable" in outcome.refused[0].reason
     # A copy that fails part way places nothing and leaves no staging folder behind
@@ -231,10 +231,10 @@ def test_add_is_all_or_nothing_and_names_each_refusal(bench_out, tmp_path, monke
             raise OSError("No space left on device")
         return shutil.copyfile(*args[:2])
 
-    monkeypatch.setattr(ledger.shutil, "copy2", failing_copy)
+    monkeypatch.setattr(intake.shutil, "copy2", failing_copy)
     fresh = tmp_path / "fresh"
     with pytest.raises(OSError, match="No space left"):
-        ledger.add_runs([bench_out], fresh)
+        intake.add_runs([bench_out], fresh)
     assert not list(fresh.rglob("*.npz")) and not list(fresh.glob(".add-*"))
 
 
@@ -243,14 +243,14 @@ def test_a_ledger_with_claims_refuses_runs_that_enter_none_unless_asked(bench_ou
     results.mkdir()
     shutil.copy(ROOT / "results" / "claims.yml", results / "claims.yml")
     # 200-step toy runs of Pendulum-v1: no claim of the project's is about them
-    outcome = ledger.add_runs([bench_out], results)
+    outcome = intake.add_runs([bench_out], results)
     assert not outcome.added and len(outcome.refused) == 2
     assert all(
         "it enters no claim declared in" in skipped.reason
         and "at 200 steps, seed 0): add it with --unclaimed" in skipped.reason
         for skipped in outcome.refused
     )
-    assert ledger.add_runs([bench_out], results, unclaimed=True).added
+    assert intake.add_runs([bench_out], results, unclaimed=True).added
     # A claim about them: each run enters it, by id
     fresh = tmp_path / "claimed"
     fresh.mkdir()
@@ -258,7 +258,7 @@ def test_a_ledger_with_claims_refuses_runs_that_enter_none_unless_asked(bench_ou
         "{id: toy, task: Pendulum-v1, n_timesteps: 200, measure: final_return, arm: serasac, baseline: sac, direction: higher}"
     )
     (fresh / "claims.yml").write_text(f"alpha: 0.05\nclaims:\n  - {claim}\n")
-    outcome = ledger.add_runs([bench_out], fresh)
+    outcome = intake.add_runs([bench_out], fresh)
     assert sorted(outcome.enters.values()) == [["toy"], ["toy"]] and len(outcome.added) == 2
 
 
@@ -271,7 +271,7 @@ def test_an_interim_claim_holds_its_runs_back_from_every_table(bench_out, tmp_pa
         "baseline: sac, direction: higher, primary: true, family: toy, planned: 2}"
     )
     (results / "claims.yml").write_text(f"alpha: 0.05\nclaims:\n  - {claim}\n")
-    ledger.add_runs([bench_out], results)
+    intake.add_runs([bench_out], results)
     shown, _, held = ledger.published_runs(results)
     assert not shown and held == ["- toy: 1 of serasac and 1 of sac (2 an arm planned)"]
     block = ledger.results_block(results)

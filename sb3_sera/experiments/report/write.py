@@ -11,7 +11,7 @@ from pathlib import Path
 from sb3_sera.experiments import stats
 from sb3_sera.experiments.claims import Claim, ClaimResult, default_claims, evaluate
 from sb3_sera.experiments.claims_text import bias_lines, claims_section, family_sizes
-from sb3_sera.experiments.identity import identity_lines
+from sb3_sera.experiments.identity import IDENTITY_CHECK, identity_lines
 from sb3_sera.experiments.records import RunResult, env_name
 from sb3_sera.experiments.report.aggregate import aggregate_section
 from sb3_sera.experiments.report.figures import (
@@ -142,7 +142,7 @@ def section_text(
         lines += ["### Initial-state bias", "", *bias_table, ""]
     identity = identity_lines(groups, code_hashes) if code_hashes is not None else []
     if identity:
-        lines += ["Code identity of groups run at several commits:", "", *identity, ""]
+        lines += [f"Code identity of groups run at several commits ({IDENTITY_CHECK}):", "", *identity, ""]
     notes = section_notes(groups, all_groups)
     if notes:
         lines += ["Notes:", *notes, ""]
