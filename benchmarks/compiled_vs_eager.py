@@ -138,6 +138,96 @@ def differences(
     return found
 
 
+def _optimized(model: SERASAC) -> dict[str, tuple[th.Tensor, dict[str, Any]]]:
+    """Every tensor the model's optimizers step, by name, with its Adam state."""
+    names = {id(param): name for name, param in model.policy.named_parameters()}
+    assert model.log_ent_coef is not None and model.ent_coef_optimizer is not None
+    names[id(model.log_ent_coef)] = "log_ent_coef"
+    optimizers = [model.actor.optimizer, model.critic.optimizer, model.ent_coef_optimizer]
+    return {
+        names[id(param)]: (param, optimizer.state[param])
+        for optimizer in optimizers
+        for group in optimizer.param_groups
+        for param in group["params"]
+    }
+
+
+def _copy_state(source: SERASAC, target: SERASAC) -> None:
+    """``target``'s parameters, targets, step-size statistics and Adam states set to ``source``'s, in place."""
+    with th.no_grad():
+        for module in ("policy", "step_size"):
+            for name, value in getattr(source, module).state_dict().items():
+                getattr(target, module).state_dict()[name].copy_(value)
+        assert source.log_ent_coef is not None and target.log_ent_coef is not None
+        target.log_ent_coef.copy_(source.log_ent_coef)
+        theirs = _optimized(target)
+        for name, (_, state) in _optimized(source).items():
+            for key, value in state.items():
+                theirs[name][1][key].copy_(value)
+
+
+def _first_moments(model: SERASAC) -> dict[str, th.Tensor]:
+    # Before the first step Adam has no state (a tensor without one is left out: its moment is zero)
+    return {name: state["exp_avg"].detach().clone() for name, (_, state) in _optimized(model).items() if state}
+
+
+def _gradients(model: SERASAC, before: dict[str, th.Tensor]) -> dict[str, th.Tensor]:
+    """The last step's gradients, from Adam's first moments before and after it: ``(m - beta1 m_before) / (1 - beta1)``."""
+    beta1 = model.actor.optimizer.param_groups[0]["betas"][0]
+    moments = _first_moments(model)
+    # Before the first step Adam has no state: its moments start at zero
+    return {name: (moment - beta1 * before.get(name, 0.0)) / (1 - beta1) for name, moment in moments.items()}
+
+
+def gradient_differences(aggregation: str, steps: int, device: str = "cpu") -> str:
+    """
+    Eager and compiled SERASAC's gradients, each step from the same state (the compiled model's set to the eager
+    one's before it, in place) on the same batch and draws; the gradients read from Adam's first moments. Returns the
+    account: the largest difference over ``steps`` steps relative to each tensor's largest eager gradient, and, after
+    the first step, the parameter elements that part by more than 1e-6, with their eager gradients against Adam's
+    ``eps`` and float32 rounding.
+    """
+    eager = make_model(False, actor_aggregation=aggregation, device=device)
+    compiled = make_model(True, actor_aggregation=aggregation, device=device)
+    largest, account = 0.0, ""
+    for step in range(1, steps + 1):
+        _copy_state(eager, compiled)
+        before = _first_moments(eager)
+        train_in_step([eager, compiled], 1, lambda step: None)
+        mine, theirs = _gradients(eager, before), _gradients(compiled, before)
+        for name, gradient in mine.items():
+            scale = gradient.abs().max().clamp_min(th.finfo(gradient.dtype).tiny)
+            largest = max(largest, float(((theirs[name] - gradient).abs().max() / scale).item()))
+        if step == 1:
+            account = _first_step_account(eager, compiled, mine, theirs)
+    return f"largest gradient difference over {steps} steps {largest:.1e} of the tensor's largest gradient; {account}"
+
+
+def _first_step_account(eager: SERASAC, compiled: SERASAC, mine: dict[str, th.Tensor], theirs: dict[str, th.Tensor]) -> str:
+    """The parameter elements that part by more than 1e-6 after one step, and their eager gradients."""
+    epsilon = th.finfo(th.float32).eps
+    parted, gradients, flipped, at_rounding = 0, [], 0, 0
+    for name, (param, _) in _optimized(eager).items():
+        other = _optimized(compiled)[name][0]
+        where = (param.detach() - other.detach()).abs() > 1e-6
+        if not where.any():
+            continue
+        parted += int(where.sum().item())
+        gradient, difference = mine[name][where].abs(), (theirs[name] - mine[name])[where].abs()
+        gradients.append(float(gradient.max().item()))
+        flipped += int((difference >= gradient).sum().item())
+        # Rounding's scale: float32's epsilon times the tensor's largest gradient, times the batch's terms
+        at_rounding += int((gradient <= epsilon * mine[name].abs().max() * BATCH_SIZE).sum().item())
+    if parted == 0:
+        return "after one step no parameter element parts by more than 1e-6"
+    return (
+        f"after one step {parted} parameter element(s) part by more than 1e-6: their eager |gradient| at most "
+        f"{max(gradients):.1e} (Adam's eps 1e-8), {at_rounding} within float32 rounding of their tensor's largest "
+        f"gradient (x batch {BATCH_SIZE}), {flipped} with the compiled gradient as far from the eager one as it is "
+        "from zero (a sign rounding can flip)"
+    )
+
+
 @contextlib.contextmanager
 def unordered_draws() -> Iterator[None]:
     """

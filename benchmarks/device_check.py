@@ -9,10 +9,20 @@ process, a table of
   100 gradient steps on the same batches and draws (``compiled_vs_eager.py``, every generator of the device reset);
   with ``order``, also compiled without keeping the step's random draws in program order (``--against
   compiled-unordered``: on the H100 with torch 2.11, 1.0e-3 after one step);
+- ``gradients``: eager and compiled SERASAC's gradients on CUDA, each step from the same parameters
+  (``compiled_vs_eager.gradient_differences``): their largest relative difference, and whether the parameters that
+  part after one step are those whose gradient is at rounding's scale (Adam's first step moves every element by about
+  its learning rate, whatever the gradient's size);
 - ``learn()`` steps per second, interleaved: SB3 SAC, SERASAC eager, ``compile_update=True`` and
-  ``"reduce-overhead"``, SBX's SAC with five critics of [256, 256] where ``sbx`` imports, on ``--env``; SERASAC eager
-  and ``"reduce-overhead"`` and MASAC eager and ``"reduce-overhead"`` on ``--ma-env`` (the CTDE policy, the agents'
-  actors stacked).
+  ``"reduce-overhead"`` (its batches from a ``DeviceReplayBuffer``), SBX's SAC with five critics of [256, 256] where
+  ``sbx`` imports, on ``--env``; SERASAC eager and ``"reduce-overhead"`` and MASAC eager and ``"reduce-overhead"`` on
+  ``--ma-env`` (the CTDE policy, the agents' actors stacked);
+- ``split``: per env step of SB3 SAC and of SERASAC ``"reduce-overhead"`` (``compile_update=True`` on a CPU), after
+  the speed section: ``learn()``, ``train()`` alone (one gradient step a call), the rest (acting, env step, buffer,
+  callbacks, logging), the compiled step's replay alone (``--split-steps`` replays back to back, timed with CUDA
+  events) and the host reads per env step (:class:`~sb3_sera.common.host_reads.HostReads`);
+- ``many``: 1, 4 and 8 processes (``--processes``) of SERASAC ``"reduce-overhead"`` learning on ``--env`` on the one
+  device at once: each one's ``learn()`` rate and their total, against one process's.
 
 Each rate is the median of ``--blocks`` blocks of ``--block-steps`` steps, with its ratio to SB3 SAC's rate (the
 single-agent rows) or to eager SERASAC's on the multi-agent task (the multi-agent rows). The defaults fit the lent
@@ -25,6 +35,7 @@ machine's budget (about 6 minutes on an H200, the install included).
 
 import argparse
 import importlib.util
+import multiprocessing
 import time
 import warnings
 from collections.abc import Callable
@@ -35,13 +46,15 @@ import gymnasium as gym
 import torch as th
 from stable_baselines3 import SAC
 from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.buffers import ReplayBuffer
 from timing import interleaved_rates, median_iqr
 
 from sb3_sera import MASAC, SERASAC
-from sb3_sera.common.compiled import CUDAGraphSkipWarning
+from sb3_sera.common.compiled import CompiledUpdate, CUDAGraphSkipWarning
+from sb3_sera.common.host_reads import HostReads
 from sb3_sera.common.mujoco_log import route_mujoco_warnings
 
-SECTIONS = ("cudagraphs", "equality", "order", "speed")
+SECTIONS = ("cudagraphs", "equality", "order", "gradients", "speed", "split", "many")
 
 
 def single_agent_models(env_id: str, cuda: bool) -> dict[str, Callable[[dict[str, Any]], BaseAlgorithm]]:
@@ -53,6 +66,9 @@ def single_agent_models(env_id: str, cuda: bool) -> dict[str, Callable[[dict[str
     }
     if cuda:
         table["SERASAC reduce-overhead"] = lambda kw: SERASAC("MlpPolicy", env_id, compile_update="reduce-overhead", **kw)
+        table["SERASAC reduce-overhead, SB3's buffer"] = lambda kw: SERASAC(
+            "MlpPolicy", env_id, compile_update="reduce-overhead", replay_buffer_class=ReplayBuffer, **kw
+        )
     if importlib.util.find_spec("sbx") is not None:
         import sbx
 
@@ -96,6 +112,95 @@ def speed_rows(models: dict[str, BaseAlgorithm], reference: str, args: argparse.
     ]
 
 
+def _timed(run: Callable[[], Any], cuda: bool) -> float:
+    """Seconds ``run`` takes, the device's work included."""
+    synchronize = th.cuda.synchronize if cuda else lambda: None
+    synchronize()
+    start = time.perf_counter()
+    run()
+    synchronize()
+    return time.perf_counter() - start
+
+
+def replay_ms(model: CompiledUpdate, replays: int, cuda: bool) -> float:
+    """
+    Milliseconds per replay of the compiled step alone, ``replays`` back to back on one batch, changing nothing
+    (``healthy`` false): CUDA events around them on a GPU, the clock on a CPU.
+    """
+    assert model._compiled_step is not None
+    batch, arguments = model._sample_batch(model.batch_size), model._probe_arguments()
+
+    def replay() -> None:
+        for _ in range(replays):
+            if model.compile_update == "reduce-overhead":
+                th.compiler.cudagraph_mark_step_begin()
+            model._compiled_step(batch, **arguments)  # type: ignore[misc]
+
+    replay()  # warm
+    if not cuda:
+        return 1e3 * _timed(replay, cuda) / replays
+    start, end = th.cuda.Event(enable_timing=True), th.cuda.Event(enable_timing=True)
+    start.record()
+    replay()
+    end.record()
+    end.synchronize()
+    return start.elapsed_time(end) / replays
+
+
+def split_rows(models: dict[str, BaseAlgorithm], steps: int, cuda: bool) -> list[str]:
+    """Per env step: ``learn()``, ``train()`` alone, the rest, the compiled step's replay alone, and host reads."""
+    rows = []
+    for name, model in models.items():
+        with HostReads() as reads:
+            learn = _timed(lambda model=model: model.learn(steps, reset_num_timesteps=False), cuda)
+        size = model.batch_size  # type: ignore[attr-defined]
+        train = _timed(lambda model=model, size=size: [model.train(1, size) for _ in range(steps)], cuda)  # type: ignore[attr-defined]
+        cells = [
+            f"learn() {1e3 * learn / steps:.2f} ms",
+            f"train() alone {1e3 * train / steps:.2f} ms",
+            f"the rest {1e3 * (learn - train) / steps:.2f} ms",
+        ]
+        if isinstance(model, CompiledUpdate) and model._compiled_step is not None:
+            cells.append(f"the replay alone {replay_ms(model, steps, cuda):.3f} ms")
+        cells.append(f"{reads.count / steps:.2f} host reads")
+        rows.append(f"| per env step | {name} | {', '.join(cells)} | |")
+    return rows
+
+
+def _one_of_many(env_id: str, common: dict[str, Any], mode: Any, steps: int, barrier: Any, rates: Any, index: int) -> None:
+    """One process of the ``many`` section: build, compile, wait for the others, then time ``learn(steps)``."""
+    route_mujoco_warnings()
+    th.set_num_threads(1)
+    model = SERASAC("MlpPolicy", env_id, compile_update=mode, **{**common, "seed": index})
+    model.learn(common["learning_starts"] + 20)
+    barrier.wait()
+    seconds = _timed(lambda: model.learn(steps, reset_num_timesteps=False), model.device.type == "cuda")
+    rates.put(steps / seconds)
+
+
+def many_rows(env_id: str, common: dict[str, Any], counts: list[int], steps: int, cuda: bool) -> list[str]:
+    """``learn()`` rates of ``count`` processes learning at once on the one device, for each count."""
+    context = multiprocessing.get_context("spawn")
+    mode: Any = "reduce-overhead" if cuda else True
+    rows, one = [], None
+    for count in counts:
+        barrier, rates = context.Barrier(count), context.Queue()
+        processes = [
+            context.Process(target=_one_of_many, args=(env_id, common, mode, steps, barrier, rates, index))
+            for index in range(count)
+        ]
+        for process in processes:
+            process.start()
+        each = sorted(rates.get() for _ in processes)
+        for process in processes:
+            process.join()
+        total = sum(each)
+        one = total if one is None else one
+        cells = f"each {', '.join(f'{rate:.1f}' for rate in each)}; total {total:.1f} steps/s"
+        rows.append(f"| many runs | {count} process(es) at once | {cells} | {total / one:.2f}x one |")
+    return rows
+
+
 def emit(rows: list[str]) -> None:
     """Table rows, printed at once."""
     for row in rows:
@@ -115,6 +220,10 @@ def main() -> None:
     parser.add_argument("--equality-steps", type=int, default=100)
     parser.add_argument("--aggregations", nargs="+", default=["median"], help="actor aggregations compared")
     parser.add_argument("--device", default="cuda", help="cuda (the check), or cpu (a smoke run, without CUDA graphs)")
+    parser.add_argument("--gradient-steps", type=int, default=100, help="steps of the gradients section")
+    parser.add_argument("--split-steps", type=int, default=300, help="env steps (and replays) of the split section")
+    parser.add_argument("--processes", type=int, nargs="+", default=[1, 4, 8], help="process counts of many")
+    parser.add_argument("--many-steps", type=int, default=500, help="learn() steps each process times")
     args = parser.parse_args()
     cuda = args.device.startswith("cuda")
     if cuda and not th.cuda.is_available():
@@ -126,7 +235,7 @@ def main() -> None:
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", CUDAGraphSkipWarning)
         timed = {"cudagraphs", "speed"} & set(args.sections)
-        single = build(single_agent_models(args.env, cuda), common) if timed else {}
+        single = build(single_agent_models(args.env, cuda), common) if timed | {"split"} & set(args.sections) else {}
         multi = build(multi_agent_models(args.ma_env, cuda), common) if timed else {}
     # Each row is printed as soon as it is measured, so that a run cut short by the machine's limit still reports.
     print("| check | what | value | ratio |\n|---|---|---|---|", flush=True)
@@ -145,9 +254,18 @@ def main() -> None:
             differences = compiled_vs_eager.differences(aggregation, against, args.equality_steps, report, args.device)
             cells = ", ".join(f"after {step}: {value:.1e} ({name})" for step, (value, name) in differences.items())
             emit([f"| compiled vs eager | {aggregation}{how} | {cells} | |"])
+    if "gradients" in args.sections:
+        for aggregation in args.aggregations:
+            account = compiled_vs_eager.gradient_differences(aggregation, args.gradient_steps, args.device)
+            emit([f"| compiled vs eager gradients | {aggregation} | {account} | |"])
     if "speed" in args.sections:
         emit(speed_rows(single, "SB3 SAC eager", args))
         emit(speed_rows(multi, "SERASAC-MA eager", args))
+    if "split" in args.sections:
+        compiled = "SERASAC reduce-overhead" if cuda else "SERASAC compile_update=True"
+        emit(split_rows({name: single[name] for name in ("SB3 SAC eager", compiled)}, args.split_steps, cuda))
+    if "many" in args.sections:
+        emit(many_rows(args.env, common, args.processes, args.many_steps, cuda))
     seconds = time.perf_counter() - started
     device = f"{th.cuda.get_device_name()}, CUDA {th.version.cuda}" if cuda else "CPU"
     print(f"\n{device}, torch {th.__version__}; {seconds:.0f} s", flush=True)

@@ -13,7 +13,6 @@ from typing import Any
 import numpy as np
 import pytest
 import torch as th
-from torch.overrides import TorchFunctionMode
 
 #: The repository's top folder (README, docs, notebooks, benchmarks, results, hyperparams)
 ROOT = Path(__file__).resolve().parents[1]
@@ -229,31 +228,3 @@ def ctrl_c(process: subprocess.Popen, timeout: float) -> str:
     os.killpg(process.pid, signal.SIGINT)
     _, stderr = process.communicate(timeout=timeout)
     return stderr
-
-
-class HostReads(TorchFunctionMode):
-    """
-    Counts the values brought back to Python or NumPy from tensors while it is active (``item``, ``tolist``,
-    ``numpy``, ``bool``/``float``/``int`` of a tensor): on a GPU each one waits for the device.
-    """
-
-    READS = frozenset(
-        {
-            th.Tensor.item,
-            th.Tensor.tolist,
-            th.Tensor.numpy,
-            th.Tensor.__bool__,
-            th.Tensor.__float__,
-            th.Tensor.__int__,
-            th.Tensor.__index__,
-        }
-    )
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.count = 0
-
-    def __torch_function__(self, func: Any, types: Any, args: Any = (), kwargs: Any = None) -> Any:
-        if func in self.READS:
-            self.count += 1
-        return func(*args, **(kwargs or {}))

@@ -34,11 +34,15 @@ TINY_PEERS = ["--env", "Pendulum-v1", "--learning-starts", "20", "--blocks", "1"
             ["--ma-env", "sb3_sera/SimpleSpread-v0", *TINY_PEERS[:4], "--warmup-blocks", "0", *TINY_TIMING],
             "SERASAC-MA-loop",
         ),
-        # On a CPU, the parts of the GPU check that compile once each (the speed rows compile four models: minutes)
+        # On a CPU, the parts of the GPU check that compile once each (the speed, split and many rows compile several
+        # models: minutes)
         (
             "device_check.py",
-            ["--device", "cpu", "--sections", "equality", "order", "--equality-steps", "2"],
-            "| compiled vs eager | median, draws in Inductor's order |",
+            [
+                *("--device", "cpu", "--sections", "equality", "order", "gradients"),
+                *("--equality-steps", "2", "--gradient-steps", "2"),
+            ],
+            "| compiled vs eager gradients | median | largest gradient difference over 2 steps",
         ),
         ("type_one_error.py", ["--trials", "5"], "| skewed | 10-run arm |"),
         ("memory.py", ["--env", "Pendulum-v1", "--buffer-size", "1000", "--gradient-steps", "2"], "SERASAC"),

@@ -14,8 +14,8 @@ from stable_baselines3.common.utils import set_random_seed
 from sb3_sera import SERASAC
 from sb3_sera.common.compiled import count_graph_breaks
 from sb3_sera.common.device_buffer import DeviceReplayBuffer
+from sb3_sera.common.host_reads import HostReads
 from tests.helpers import (
-    HostReads,
     assert_close_state,
     assert_compiled_stays_with_eager,
     assert_gpu_trained_model_loads_on_the_cpu,
