@@ -187,6 +187,7 @@ class Measure:
     paper_units: bool
 
 
+#: Every measure a claim can compare, by the name a claims file gives it
 MEASURES: dict[str, Measure] = {
     "final_return": Measure(final_return, "final return (mean of the last 3 evaluations)", True),
     "auc": Measure(auc, "normalized AUC", True),

@@ -56,7 +56,7 @@ class CompiledUpdate(OffPolicyAlgorithm):
     drawn at once from a device buffer.
 
     The reads: in ``learn()`` the steps' finite checks and logged values stay on the device and are read back once per
-    log interval (when ``learn()`` logs, after at most :data:`MAX_PENDING_STEPS` gradient steps, and when it ends); a
+    log interval (when ``learn()`` logs, after at most ``MAX_PENDING_STEPS``, 1,000, gradient steps, and when it ends); a
     non-finite step and every step after it change nothing, and the read raises ``FloatingPointError`` naming the
     first such step. ``read_every_train = True`` reads after every ``train()`` call instead, as does a ``train()``
     called outside ``learn()``.
