@@ -228,3 +228,18 @@ def ctrl_c(process: subprocess.Popen, timeout: float) -> str:
     os.killpg(process.pid, signal.SIGINT)
     _, stderr = process.communicate(timeout=timeout)
     return stderr
+
+
+def tiny_grid(second_variant: str) -> str:
+    """A bench grid of two runs on ``ENV_ID`` at 200 steps: SERASAC and ``second_variant`` (a grid's variant line)."""
+    return f"""
+algorithms:
+  serasac: {{}}
+  {second_variant}
+tasks: [{ENV_ID}]
+seeds: [0]
+n_timesteps: 200
+eval_freq: 100
+eval_episodes: 1
+hyperparams: {{learning_starts: 50, batch_size: 32}}
+"""

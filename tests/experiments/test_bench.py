@@ -8,21 +8,11 @@ import pytest
 from sb3_sera.experiments import bench
 from sb3_sera.experiments.cli import main
 from sb3_sera.experiments.report import PAPER_NAMES, PAPER_RESULTS
-from tests.helpers import ROOT
+from tests.helpers import ROOT, tiny_grid
 
 GRIDS = ROOT / "benchmarks" / "grids"
 
-GRID = """
-algorithms:
-  serasac: {}
-  ensemble_mean: {algo: serasac, target_aggregation: mean}
-tasks: [Pendulum-v1]
-seeds: [0]
-n_timesteps: 200
-eval_freq: 100
-eval_episodes: 1
-hyperparams: {learning_starts: 50, batch_size: 32}
-"""
+GRID = tiny_grid("ensemble_mean: {algo: serasac, target_aggregation: mean}")
 
 
 def write(tmp_path, text: str):
@@ -146,7 +136,7 @@ def test_grid_runs_and_resumes(tmp_path, capsys):
 
 
 def test_grid_on_a_local_ray_instance(tmp_path):
-    import ray
+    ray = pytest.importorskip("ray", reason="Ray is the distributed extra: pip install -e '.[distributed]'")
 
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     try:

@@ -14,19 +14,9 @@ from sb3_sera.experiments.claims_text import claims_section
 from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sb3_sera.experiments.records import read_record
 from sb3_sera.experiments.report import group_runs, load_runs
-from tests.helpers import ROOT
+from tests.helpers import ROOT, tiny_grid
 
-GRID = """
-algorithms:
-  serasac: {}
-  sac: {}
-tasks: [Pendulum-v1]
-seeds: [0]
-n_timesteps: 200
-eval_freq: 100
-eval_episodes: 1
-hyperparams: {learning_starts: 50, batch_size: 32}
-"""
+GRID = tiny_grid("sac: {}")
 
 
 @pytest.fixture(scope="module")
