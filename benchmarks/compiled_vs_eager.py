@@ -207,8 +207,9 @@ def _first_step_account(eager: SERASAC, compiled: SERASAC, mine: dict[str, th.Te
     """The parameter elements that part by more than 1e-6 after one step, and their eager gradients."""
     epsilon = th.finfo(th.float32).eps
     parted, gradients, flipped, at_rounding = 0, [], 0, 0
+    others = _optimized(compiled)
     for name, (param, _) in _optimized(eager).items():
-        other = _optimized(compiled)[name][0]
+        other = others[name][0]
         where = (param.detach() - other.detach()).abs() > 1e-6
         if not where.any():
             continue
