@@ -333,8 +333,11 @@ def test_the_report_prints_shared_settings_and_marks_undeclared_differences(tmp_
         fake_run(root, "serasac", seed + 1, seed, [1.0, 2.0, 3.0], hyperparams={"batch_size": 256, "learning_starts": 10})
         fake_run(root, "masac", seed + 1, seed, [1.0, 2.0, 2.0], hyperparams={"batch_size": 64, "learning_starts": 10},
                  algo="masac")  # fmt: skip
+    fake_run(root, "mappo", 1, 0, [1.0, 1.5, 2.0], hyperparams={"n_steps": 64}, algo="mappo")
     report = report_roots([root], tmp_path / "report", reps=REPS).read_text()
-    assert "Shared settings of every group: learning_starts=10, buffer_size=1000000, gamma=0.99" in report
+    # An on-policy group has no replay settings: they are still printed for the groups that have them
+    assert "Shared settings of every group that has them: learning_starts=10, buffer_size=1000000, gamma=0.99" in report
+    assert "mappo has no learning_starts, buffer_size, tau" in report
     assert "Not matched to serasac: masac differs in batch_size: serasac=256, masac=64." in report
     assert table_row(report, "masac")[6] == "unmatched (batch_size)"
     # Declared by the comparison that made both (its grid's studies): compared, and said so

@@ -118,13 +118,18 @@ def settings_lines(groups: Sequence[RunGroup]) -> list[str]:
     group's (such a row is no comparison of algorithms).
     """
     settings = {group.label: group_settings(group) for group in groups}
-    common_keys = [key for key in next(iter(settings.values())) if all(key in s for s in settings.values())]
-    common = {
-        key: value
-        for key, value in next(iter(settings.values())).items()
-        if key in common_keys and len({repr(s[key]) for s in settings.values()}) == 1
-    }
-    lines = ["Shared settings of every group: " + ", ".join(f"{key}={value}" for key, value in common.items()) + "."]
+    keys = list(dict.fromkeys(key for group_settings_ in settings.values() for key in group_settings_))
+    common = {}
+    for key in keys:
+        values = {repr(s[key]): s[key] for s in settings.values() if key in s}
+        if len(values) == 1:
+            common[key] = next(iter(values.values()))
+    shared = ", ".join(f"{key}={value}" for key, value in common.items())
+    lines = [f"Shared settings of every group that has them: {shared}."]
+    for label, group_settings_ in settings.items():
+        missing = [key for key in common if key not in group_settings_]
+        if missing:
+            lines.append(f"{label} has no {', '.join(missing)} (another kind of algorithm); its own are in its runs.")
     reference, _ = reference_group(groups)
     if reference is not None:
         for group in groups:
