@@ -20,7 +20,8 @@ process, a table of
 - ``split``: per env step of SB3 SAC and of SERASAC ``"reduce-overhead"`` (``compile_update=True`` on a CPU), after
   the speed section: ``learn()``, ``train()`` alone (one gradient step a call), the rest (acting, env step, buffer,
   callbacks, logging), the compiled step's replay alone (``--split-steps`` replays back to back, timed with CUDA
-  events) and the host reads per env step (:class:`~sb3_sera.common.host_reads.HostReads`);
+  events), an action (``_sample_action``) eager and through the compiled actor, and the host reads per env step
+  (:class:`~sb3_sera.common.host_reads.HostReads`);
 - ``many``: 1, 4 and 8 processes (``--processes``) of SERASAC ``"reduce-overhead"`` learning on ``--env`` on the one
   device at once: each one's ``learn()`` rate and their total, against one process's.
 
@@ -147,6 +148,21 @@ def replay_ms(model: CompiledUpdate, replays: int, cuda: bool) -> float:
     return start.elapsed_time(end) / replays
 
 
+def acting_ms(model: CompiledUpdate, compiled: bool, actions: int, cuda: bool) -> float:
+    """Milliseconds per action ``learn()`` takes (``_sample_action``, the action read back), eager or compiled."""
+    before, model.compile_action = model.compile_action, compiled
+
+    def act() -> None:
+        for _ in range(actions):
+            model._sample_action(0, model.action_noise, model.n_envs)
+
+    try:
+        act()  # warm (and compile)
+        return 1e3 * _timed(act, cuda) / actions
+    finally:
+        model.compile_action = before
+
+
 def split_rows(models: dict[str, BaseAlgorithm], steps: int, cuda: bool) -> list[str]:
     """Per env step: ``learn()``, ``train()`` alone, the rest, the compiled step's replay alone, and host reads."""
     rows = []
@@ -162,6 +178,8 @@ def split_rows(models: dict[str, BaseAlgorithm], steps: int, cuda: bool) -> list
         ]
         if isinstance(model, CompiledUpdate) and model._compiled_step is not None:
             cells.append(f"the replay alone {replay_ms(model, steps, cuda):.3f} ms")
+            eager, compiled = (acting_ms(model, flag, steps, cuda) for flag in (False, True))
+            cells.append(f"an action {eager:.3f} ms eager, {compiled:.3f} ms compiled")
         cells.append(f"{reads.count / steps:.2f} host reads")
         rows.append(f"| per env step | {name} | {', '.join(cells)} | |")
     return rows

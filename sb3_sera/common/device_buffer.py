@@ -13,8 +13,7 @@ Not supported, each refused with a ``ValueError`` naming it: ``optimize_memory_u
 stored), and ``VecNormalize`` (SB3 normalizes a sampled batch with the env's NumPy statistics, on the host).
 """
 
-from operator import itemgetter
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch as th
@@ -57,6 +56,8 @@ class DeviceReplayBuffer(ReplayBuffer):
         as infinite horizon task.
     """
 
+    #: The tensors that hold the transitions (moved, saved and loaded together); a subclass adds its own
+    stored_fields: ClassVar[tuple[str, ...]] = FIELDS
     # SB3's buffers declare NumPy arrays; these hold tensors on the buffer's device
     observations: Any
     next_observations: Any
@@ -147,13 +148,23 @@ class DeviceReplayBuffer(ReplayBuffer):
         total = n_batches * batch_size
         indices = th.randint(filled, (total,), device=self.device)
         samples = self._get_samples(indices)
-        parts = [_map(lambda tensor: tensor.split(batch_size), field) for field in samples[:5]]
-        return [type(samples)(*(_map(itemgetter(index), part) for part in parts)) for index in range(n_batches)]
+        parts = {
+            name: _map(lambda tensor: tensor.split(batch_size), field)
+            for name, field in samples._asdict().items()
+            if field is not None
+        }
+        return [
+            type(samples)(**{name: _map(lambda split, i=index: split[i], part) for name, part in parts.items()})
+            for index in range(n_batches)
+        ]
 
     def _get_samples(self, batch_inds: Any, env: VecNormalize | None = None) -> Any:
         """The transitions at ``batch_inds``, each from an env drawn uniformly (as SB3's)."""
         batch_inds = th.as_tensor(batch_inds, device=self.device)
-        env_inds = th.randint(self.n_envs, batch_inds.shape, device=self.device)
+        return self._samples_at(batch_inds, th.randint(self.n_envs, batch_inds.shape, device=self.device))
+
+    def _samples_at(self, batch_inds: th.Tensor, env_inds: th.Tensor) -> Any:
+        """The transitions at ``batch_inds`` of the envs ``env_inds``, as SB3's samples."""
 
         def gather(field: th.Tensor) -> th.Tensor:
             return field[batch_inds, env_inds]
@@ -174,13 +185,13 @@ class DeviceReplayBuffer(ReplayBuffer):
     def to(self, device: th.device | str) -> None:
         """Move the stored transitions to ``device`` (and draw batches there)."""
         self.device = th.device(device)
-        for name in FIELDS:
+        for name in self.stored_fields:
             setattr(self, name, _map(lambda tensor: tensor.to(self.device), getattr(self, name)))
 
     def __getstate__(self) -> dict[str, Any]:
         # NumPy arrays: a buffer saved on a GPU loads on a machine without one
         state = self.__dict__.copy()
-        for name in FIELDS:
+        for name in self.stored_fields:
             state[name] = _map(lambda tensor: tensor.cpu().numpy(), state[name])
         state["device"] = str(self.device)
         return state
@@ -190,7 +201,7 @@ class DeviceReplayBuffer(ReplayBuffer):
         if device.type == "cuda" and not th.cuda.is_available():
             device = th.device("cpu")
         self.__dict__.update(state, device=device)
-        for name in FIELDS:
+        for name in self.stored_fields:
             setattr(self, name, _map(lambda array: th.from_numpy(array).to(device), state[name]))
 
 

@@ -1,4 +1,7 @@
-"""SUNRISE's replay buffer: SB3's, plus each transition's bootstrap masks, drawn once when it is stored."""
+"""
+SUNRISE's replay buffers: SB3's, or the device one (:class:`~sb3_sera.common.device_buffer.DeviceReplayBuffer`), plus
+each transition's bootstrap masks, drawn once when it is stored.
+"""
 
 from typing import Any, NamedTuple
 
@@ -8,6 +11,7 @@ from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.vec_env import VecNormalize
 
+from sb3_sera.common.device_buffer import FIELDS, DeviceReplayBuffer
 from sb3_sera.common.hyperparameters import check_int, check_range
 
 
@@ -116,3 +120,67 @@ class SUNRISEReplayBuffer(ReplayBuffer):
             self.masks[batch_inds, env_indices, :],
         )
         return SUNRISEReplayBufferSamples(*tuple(map(self.to_torch, data)))
+
+
+class SUNRISEDeviceReplayBuffer(DeviceReplayBuffer):
+    """
+    :class:`SUNRISEReplayBuffer` on the model's device: a
+    :class:`~sb3_sera.common.device_buffer.DeviceReplayBuffer` that also stores each transition's bootstrap masks
+    (drawn in ``add()`` as :class:`SUNRISEReplayBuffer` draws them) and returns them with the batch.
+
+    :param buffer_size: Max number of element in the buffer
+    :param observation_space: Observation space
+    :param action_space: Action space
+    :param device: PyTorch device of the stored transitions and of the batches
+    :param n_envs: Number of parallel environments
+    :param optimize_memory_usage: must be False (refused: the next observations are stored)
+    :param handle_timeout_termination: Handle timeout termination (due to timelimit) separately and treat the task
+        as infinite horizon task.
+    :param n_members: ensemble size ``N``
+    :param bootstrap_prob: probability that a member trains on a transition, in ``(0, 1]`` (the authors' 0.5)
+    """
+
+    stored_fields = (*FIELDS, "masks")
+
+    def __init__(
+        self,
+        buffer_size: int,
+        observation_space: spaces.Space,
+        action_space: spaces.Space,
+        device: th.device | str = "auto",
+        n_envs: int = 1,
+        optimize_memory_usage: bool = False,
+        handle_timeout_termination: bool = True,
+        n_members: int = 5,
+        bootstrap_prob: float = 0.5,
+    ):
+        super().__init__(
+            buffer_size, observation_space, action_space, device, n_envs, optimize_memory_usage, handle_timeout_termination
+        )
+        self.n_members = check_int("n_members", n_members, 1)
+        self.bootstrap_prob = check_range("bootstrap_prob", bootstrap_prob, 0.0, 1.0, low_inclusive=False)
+        self.masks = self._zeros((self.n_members,), th.float32)
+
+    def add(
+        self,
+        obs: Any,
+        next_obs: Any,
+        action: np.ndarray,
+        reward: np.ndarray,
+        done: np.ndarray,
+        infos: list[dict[str, Any]],
+    ) -> None:
+        masks = bootstrap_masks(self.n_envs, self.n_members, self.bootstrap_prob)
+        self.masks[self.pos] = th.as_tensor(masks, device=self.device)
+        super().add(obs, next_obs, action, reward, done, infos)
+
+    def _samples_at(self, batch_inds: th.Tensor, env_inds: th.Tensor) -> SUNRISEReplayBufferSamples:
+        samples = super()._samples_at(batch_inds, env_inds)
+        return SUNRISEReplayBufferSamples(
+            samples.observations,
+            samples.actions,
+            samples.next_observations,
+            samples.dones,
+            samples.rewards,
+            masks=self.masks[batch_inds, env_inds],
+        )

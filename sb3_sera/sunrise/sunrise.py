@@ -26,6 +26,7 @@ from sb3_sera.common.compiled import (
     masked_sac_update,
     sac_plans,
 )
+from sb3_sera.common.device_buffer import DeviceReplayBuffer
 from sb3_sera.common.finite import check_finite, gradient_step_context, with_env_step_check
 from sb3_sera.common.hyperparameters import (
     base_arguments,
@@ -36,7 +37,7 @@ from sb3_sera.common.hyperparameters import (
 from sb3_sera.common.naming import NamedRuns
 from sb3_sera.common.off_policy import record_means, start_train, target_update_due
 from sb3_sera.common.tuning import TuningSpace
-from sb3_sera.sunrise.buffers import SUNRISEReplayBuffer, SUNRISEReplayBufferSamples
+from sb3_sera.sunrise.buffers import SUNRISEDeviceReplayBuffer, SUNRISEReplayBuffer, SUNRISEReplayBufferSamples
 from sb3_sera.sunrise.ensemble import backup_weight, ensemble_std, masked_mean, weighted_bellman_loss
 from sb3_sera.sunrise.policies import (
     DEFAULT_N_MEMBERS,
@@ -47,6 +48,9 @@ from sb3_sera.sunrise.policies import (
     SUNRISEPolicy,
 )
 from sb3_sera.sunrise.tuning import SUNRISE_TUNING
+
+#: The replay buffers SUNRISE trains from (each stores the bootstrap masks): SB3's, and the one on the device
+BUFFER_CLASSES = (SUNRISEReplayBuffer, SUNRISEDeviceReplayBuffer)
 
 #: What a gradient step logs, in this order (``ent_coef_loss`` when the coefficients are learned)
 LOGGED = ("ent_coef", "critic_loss", "actor_loss", "backup_weight", "ensemble_std", "ent_coef_loss")
@@ -100,8 +104,9 @@ class SUNRISE(NamedRuns, Capabilities, CompiledUpdate, OffPolicyAlgorithm):
     :param train_freq: Update the model every ``train_freq`` steps, or ``(n, "step" | "episode")``
     :param gradient_steps: How many gradient steps to do after each rollout (``-1``: as many as env steps)
     :param action_noise: the action noise type (None by default)
-    :param replay_buffer_class: Replay buffer class to use: :class:`~sb3_sera.sunrise.buffers.SUNRISEReplayBuffer`
-        (None) or a subclass of it
+    :param replay_buffer_class: Replay buffer class to use: :class:`~sb3_sera.sunrise.buffers.SUNRISEReplayBuffer`,
+        :class:`~sb3_sera.sunrise.buffers.SUNRISEDeviceReplayBuffer` (or a subclass), or None for the first (the second
+        with ``compile_update="reduce-overhead"`` on CUDA)
     :param replay_buffer_kwargs: Keyword arguments to pass to the replay buffer on creation (``n_members`` and
         ``bootstrap_prob`` come from SUNRISE's own arguments)
     :param optimize_memory_usage: Enable a memory efficient variant of the replay buffer
@@ -118,10 +123,7 @@ class SUNRISE(NamedRuns, Capabilities, CompiledUpdate, OffPolicyAlgorithm):
         (the authors' 20; 0 weighs every backup 1)
     :param ucb_lambda: ``lambda >= 0`` of the UCB exploration ``mean_Q + lambda * std_Q`` over the members'
         proposed actions; 0 (the authors' default) lets one random member act for a whole episode
-    :param compile_update: compile the whole gradient step of every member (losses, Adam steps, target update) into
-        one graph with ``torch.compile`` (``fullgraph=True``), as SERASAC's ``compile_update``: the same results up to
-        float rounding, a non-finite value still stops training naming it (read once per ``train()`` call, the
-        updates of its step and the later ones masked); ``"reduce-overhead"`` adds CUDA graphs (``device="cuda"``)
+    :param compile_update: compile the members' gradient step whole (:class:`.CompiledUpdate`; "reduce-overhead": CUDA graphs)
     :param tensorboard_log: the log location for tensorboard (if None, no logging)
     :param policy_kwargs: additional arguments to be passed to the policy on creation, e.g. ``net_arch`` and
         ``n_critics`` (critics per member, 2)
@@ -140,7 +142,7 @@ class SUNRISE(NamedRuns, Capabilities, CompiledUpdate, OffPolicyAlgorithm):
     actor: EnsembleActor
     critic: MemberCritics
     critic_target: MemberCritics
-    replay_buffer: SUNRISEReplayBuffer
+    replay_buffer: SUNRISEReplayBuffer | SUNRISEDeviceReplayBuffer
 
     @checks_keywords
     def __init__(
@@ -182,10 +184,10 @@ class SUNRISE(NamedRuns, Capabilities, CompiledUpdate, OffPolicyAlgorithm):
             raise ValueError(f"{SINGLE_AGENT_ONLY}: got policy={policy!r}")
         if env is not None and isinstance(env.observation_space, spaces.Dict):
             raise ValueError(f"{SINGLE_AGENT_ONLY}: got a Dict observation space with keys {list(env.observation_space)}")
-        if replay_buffer_class is not None and not issubclass(replay_buffer_class, SUNRISEReplayBuffer):
+        if replay_buffer_class is not None and not issubclass(replay_buffer_class, BUFFER_CLASSES):
             raise ValueError(
-                f"replay_buffer_class={replay_buffer_class.__name__} is invalid: SUNRISE needs SUNRISEReplayBuffer "
-                "(None) or a subclass of it, which stores each transition's bootstrap masks"
+                f"replay_buffer_class={replay_buffer_class.__name__} is invalid: SUNRISE needs SUNRISEReplayBuffer or "
+                "SUNRISEDeviceReplayBuffer (or a subclass), which store each transition's bootstrap masks, or None"
             )
         self.n_members = check_int("n_members", n_members, 1)
         self.bootstrap_prob = check_range("bootstrap_prob", bootstrap_prob, 0.0, 1.0, low_inclusive=False)
@@ -202,7 +204,7 @@ class SUNRISE(NamedRuns, Capabilities, CompiledUpdate, OffPolicyAlgorithm):
             **base_arguments(
                 OffPolicyAlgorithm.__init__,
                 locals(),
-                replay_buffer_class=replay_buffer_class or SUNRISEReplayBuffer,
+                replay_buffer_class=replay_buffer_class,
                 sde_support=False,
                 supported_action_spaces=(spaces.Box,),
                 support_multi_env=True,
@@ -228,6 +230,8 @@ class SUNRISE(NamedRuns, Capabilities, CompiledUpdate, OffPolicyAlgorithm):
             "bootstrap_prob": self.bootstrap_prob,
         }
         self.policy_kwargs = {**self.policy_kwargs, "n_members": self.n_members, "ucb_lambda": self.ucb_lambda}
+        if self.replay_buffer_class is None and not (self.compile_update == "reduce-overhead" and self.device.type == "cuda"):
+            self.replay_buffer_class = SUNRISEReplayBuffer
         super()._setup_model()
         self.actor = self.policy.actor
         self.critic = self.policy.critic
@@ -404,6 +408,9 @@ class SUNRISE(NamedRuns, Capabilities, CompiledUpdate, OffPolicyAlgorithm):
 
     def _sample_batch(self, batch_size: int) -> SUNRISEReplayBufferSamples:
         return self._sample(batch_size)
+
+    def _device_buffer_class(self) -> type[DeviceReplayBuffer]:
+        return SUNRISEDeviceReplayBuffer
 
     def _logged_names(self) -> list[str]:
         return list(LOGGED[: 6 if self.ent_coef_optimizer is not None else 5])

@@ -1,16 +1,22 @@
-"""The masked Adam and Polyak updates of a compiled step against torch's own by hand-made cases, and its read."""
+"""
+The masked Adam and Polyak updates of a compiled step against torch's own by hand-made cases, its read, the order of
+its random draws, and the compiled actor ``learn()`` acts through.
+"""
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
+import numpy as np
 import pytest
 import torch as th
 from torch._inductor.fx_passes.control_dependencies import control_deps
 from torch._subclasses.fake_tensor import DataDependentOutputException, FakeTensorMode
 from torch.fx.experimental.proxy_tensor import make_fx
 
+from sb3_sera import IET, MASAC, MATD3, SERASAC, SUNRISE
 from sb3_sera.common import graph_passes
 from sb3_sera.common.compiled import AdamPlan, all_finite, masked_adam, masked_polyak, read_steps, step_options
 from sb3_sera.common.graph_passes import KeepRandomOrder
+from tests.helpers import CTDE_TASK, ENV_ID
 
 
 @pytest.mark.parametrize(
@@ -160,3 +166,36 @@ def test_a_step_compiled_with_the_draws_chained_by_this_package_draws_as_eager(m
         th.manual_seed(5)
         th.testing.assert_close(compiled(x), expected)
     assert chained == [2]
+
+
+def _actions(algorithm: type, policy: str, env_id: str, compile_action: bool | None, **kwargs: Any) -> tuple[Any, int]:
+    """Three of ``learn()``'s actions (``_sample_action``) of a fresh model, and how many the compiled actor took."""
+    model = algorithm(policy, env_id, seed=0, compile_update=True, **kwargs)
+    model.compile_action = compile_action
+    model._setup_learn(10)
+    calls = []
+    actor = model._compiled_action
+    model._compiled_action = lambda *args: calls.append(args) or actor(*args)
+    th.manual_seed(3)
+    actions = np.stack([model._sample_action(learning_starts=0, n_envs=1)[0] for _ in range(3)])
+    assert "_predict" not in vars(model.policy)  # the compiled actor is the policy's only while acting
+    return actions, len(calls)
+
+
+@pytest.mark.parametrize(
+    "algorithm, policy, env_id, kwargs",
+    [
+        (SERASAC, "MlpPolicy", ENV_ID, dict(policy_kwargs=dict(net_arch=[8]))),
+        (SUNRISE, "MlpPolicy", ENV_ID, dict(n_members=3, policy_kwargs=dict(net_arch=[8]))),
+        (MASAC, "CTDEPolicy", CTDE_TASK, dict(policy_kwargs=dict(net_arch=[8]))),
+        (IET, "CTDEPolicy", CTDE_TASK, dict(policy_kwargs=dict(net_arch=[8]))),
+        (MATD3, "CTDEPolicy", CTDE_TASK, dict(policy_kwargs=dict(net_arch=[8]), action_noise=None)),
+    ],
+)
+def test_learn_acts_through_the_compiled_actor_as_the_eager_one(algorithm, policy, env_id, kwargs):
+    eager, eager_calls = _actions(algorithm, policy, env_id, compile_action=False, **kwargs)
+    compiled, compiled_calls = _actions(algorithm, policy, env_id, compile_action=True, **kwargs)
+    assert (eager_calls, compiled_calls) == (0, 3)
+    np.testing.assert_allclose(compiled, eager, atol=1e-6)
+    # By default, only a model on a CUDA device acts compiled (on a CPU it saves a few percent of an action)
+    assert _actions(algorithm, policy, env_id, compile_action=None, **kwargs)[1] == 0

@@ -9,9 +9,10 @@ from stable_baselines3.common.buffers import DictReplayBuffer, ReplayBuffer
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.vec_env import VecNormalize
 
-from sb3_sera import MASAC, SERASAC
+from sb3_sera import MASAC, SERASAC, SUNRISE
 from sb3_sera.common.device_buffer import DeviceDictReplayBuffer, DeviceReplayBuffer, device_buffer_class
 from sb3_sera.experiments.checkpoint import _buffer_arrays, _restore_buffer
+from sb3_sera.sunrise.buffers import SUNRISEDeviceReplayBuffer, SUNRISEReplayBuffer
 from tests.helpers import CTDE_TASK, ENV_ID, SMALL, SMALL_CTDE
 
 OBSERVATION = spaces.Box(-10, 10, (3,), dtype=np.float32)
@@ -149,3 +150,30 @@ def test_a_checkpoint_keeps_a_device_buffers_transitions():
     for name in ("observations", "next_observations", "actions", "rewards", "dones", "timeouts"):
         assert th.equal(getattr(fresh, name), getattr(buffer, name)), name
     assert (fresh.pos, fresh.full) == (buffer.pos, buffer.full)
+
+
+def test_sunrise_keeps_its_bootstrap_masks_on_the_device_and_learns_compiled(tmp_path):
+    # The masks drawn as SUNRISE's own buffer draws them (NumPy's generator), stored and sampled with each transition
+    host = SUNRISEReplayBuffer(8, OBSERVATION, ACTION, device="cpu", n_envs=2, n_members=3)
+    device = SUNRISEDeviceReplayBuffer(8, OBSERVATION, ACTION, device="cpu", n_envs=2, n_members=3)
+    for buffer in (host, device):
+        np.random.seed(0)
+        _fill(buffer, 6, 2)
+    np.testing.assert_array_equal(device.masks.numpy(), host.masks)
+    # Each sampled row's masks are its transition's (t and e read back from the observation)
+    for batch in device.sample_batches(2, 32):
+        t, e = (batch.observations[:, 0] // 10).long(), (batch.observations[:, 0] % 10).long()
+        assert th.equal(batch.masks, device.masks[t % 4, e])
+    with pytest.raises(ValueError, match="SUNRISEDeviceReplayBuffer"):
+        SUNRISE("MlpPolicy", ENV_ID, replay_buffer_class=DeviceReplayBuffer)
+    model = SUNRISE(
+        "MlpPolicy", ENV_ID, replay_buffer_class=SUNRISEDeviceReplayBuffer, compile_update=True, n_members=3, seed=0, **SMALL
+    )
+    assert SUNRISE("MlpPolicy", ENV_ID, **SMALL).replay_buffer_class is SUNRISEReplayBuffer
+    assert model._device_buffer_class() is SUNRISEDeviceReplayBuffer  # the default for CUDA graphs on CUDA
+    model.learn(120)
+    assert model.logger.name_to_value["train/critic_loss"] != 0
+    model.save_replay_buffer(tmp_path / "buffer")
+    masks = model.replay_buffer.masks.clone()
+    model.load_replay_buffer(tmp_path / "buffer")
+    assert isinstance(model.replay_buffer, SUNRISEDeviceReplayBuffer) and th.equal(model.replay_buffer.masks, masks)

@@ -1,9 +1,9 @@
 """
 :class:`CompiledUpdate`, the one home of ``compile_update``: an off-policy algorithm that inherits it supplies its
 gradient step as a graph (``CompiledUpdate._gradient_step_graph``) and its optimizers' plans; the class compiles the
-step, runs a ``train()`` call's steps on batches drawn at once without reading anything back, reads the steps' values
-once per log interval in ``learn()`` (or after every call), logs them and hands the algorithm its own
-(``CompiledUpdate._after_compiled_steps``).
+step and the action ``learn()`` takes, runs a ``train()`` call's steps on batches drawn at once without reading
+anything back, reads the steps' values once per log interval in ``learn()`` (or after every call), logs them and hands
+the algorithm its own (``CompiledUpdate._after_compiled_steps``).
 """
 
 import io
@@ -11,7 +11,9 @@ import pathlib
 from collections.abc import Callable, Sequence
 from typing import Any, ClassVar, NamedTuple, TypeVar
 
+import numpy as np
 import torch as th
+from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from torch.utils import _pytree
 
@@ -61,6 +63,9 @@ class CompiledUpdate(OffPolicyAlgorithm):
     first such step. ``read_every_train = True`` reads after every ``train()`` call instead, as does a ``train()``
     called outside ``learn()``.
 
+    The action: on a CUDA device ``learn()`` acts through the policy's ``_predict`` compiled in the same mode (the
+    action the one value read back); ``compile_action`` chooses elsewhere.
+
     An algorithm supplies ``_gradient_step_graph`` and ``_optimizer_plans``, calls ``_setup_compiled_update`` at the
     end of its ``_setup_model`` and ``_train_compiled`` from its ``train`` where ``_compiled_step`` is set; the rest
     has defaults for SAC's family to override (the developer guide's "Compiling an algorithm").
@@ -74,6 +79,10 @@ class CompiledUpdate(OffPolicyAlgorithm):
     _adam_plans: list[AdamPlan]
     #: Read the steps' values back after every ``train()`` call, not once per log interval
     read_every_train: bool = False
+    #: Act in ``learn()`` through the compiled actor (with ``"reduce-overhead"``, a CUDA graph): None, the default,
+    #: where the model is on a CUDA device (on a CPU it saves a few percent of an action, not of a step), or True/False
+    compile_action: bool | None = None
+    _compiled_action: Callable[..., th.Tensor] | None
     #: Whether ``learn()`` is running with its reads deferred to the log interval
     _deferring_reads: bool = False
     #: The steps run and not yet read: their outputs, and where each ``train()`` call began (its first update's
@@ -86,7 +95,7 @@ class CompiledUpdate(OffPolicyAlgorithm):
     def _setup_model(self) -> None:
         # CUDA graphs' batches drawn on the device, unless a buffer class is given
         if self.replay_buffer_class is None and self.compile_update == "reduce-overhead" and self.device.type == "cuda":
-            self.replay_buffer_class = device_buffer_class(self.observation_space)
+            self.replay_buffer_class = self._device_buffer_class()
         super()._setup_model()
         if isinstance(self.replay_buffer, DeviceReplayBuffer) and self._vec_normalize_env is not None:
             raise ValueError(
@@ -95,6 +104,10 @@ class CompiledUpdate(OffPolicyAlgorithm):
                 "Dict observations), or train without VecNormalize"
             )
 
+    def _device_buffer_class(self) -> type[DeviceReplayBuffer]:
+        """The replay buffer on the device that ``"reduce-overhead"`` on CUDA uses by default (SB3's, on the device)."""
+        return device_buffer_class(self.observation_space)
+
     def _take_compile_update(self, mode: CompileMode) -> None:
         """Set ``compile_update`` (at construction), ``ValueError`` naming the modes for anything else."""
         check_choice("compile_update", mode, COMPILE_MODES)
@@ -102,7 +115,7 @@ class CompiledUpdate(OffPolicyAlgorithm):
 
     def _setup_compiled_update(self) -> None:
         """Compile the gradient step and make its optimizers' plans, where ``compile_update`` asks for it."""
-        self._compiled_step, self._adam_plans = None, []
+        self._compiled_step, self._compiled_action, self._adam_plans = None, None, []
         self._pending_outputs, self._pending_calls, self._pending_healthy = [], [], None
         if not self.compile_update:
             return
@@ -114,6 +127,7 @@ class CompiledUpdate(OffPolicyAlgorithm):
         self.compile_update = available_mode(self.compile_update, self.device)
         self._adam_plans = self._optimizer_plans()
         self._compiled_step = compile_step(self._gradient_step_graph, self.compile_update)
+        self._compiled_action = compile_step(self._action_graph, self.compile_update)
 
     def _optimizer_plans(self) -> list[AdamPlan]:
         """The Adam plans of the optimizers the step updates, in the order of its ``learning_rates`` and ``states``."""
@@ -139,6 +153,36 @@ class CompiledUpdate(OffPolicyAlgorithm):
         :param states: each plan's Adam state (:meth:`.AdamPlan.state`), in ``_adam_plans`` order
         """
         raise NotImplementedError
+
+    def _action_graph(self, observation: Any, deterministic: bool = False) -> th.Tensor:
+        """The policy's ``_predict`` as a graph: the action ``learn()`` takes, on the model's device."""
+        return type(self.policy)._predict(self.policy, observation, deterministic=deterministic)
+
+    def _acting_compiled(self) -> bool:
+        """Whether ``learn()`` acts through the compiled actor (``compile_action``)."""
+        if self._compiled_action is None:
+            return False
+        return self.device.type == "cuda" if self.compile_action is None else self.compile_action
+
+    def _compiled_predict(self, observation: Any, deterministic: bool = False) -> th.Tensor:
+        """The policy's ``_predict`` through the compiled actor (``_acting_compiled``)."""
+        assert self._compiled_action is not None
+        if self.compile_update == "reduce-overhead":
+            th.compiler.cudagraph_mark_step_begin()
+        return self._compiled_action(observation, deterministic)
+
+    def _sample_action(
+        self, learning_starts: int, action_noise: ActionNoise | None = None, n_envs: int = 1
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """SB3's ``_sample_action``, the policy's action computed by the compiled actor where ``_acting_compiled``."""
+        if not self._acting_compiled():
+            return super()._sample_action(learning_starts, action_noise, n_envs)
+        # SB3's predict (and an algorithm's own) around the policy's _predict: the compiled one for this action only
+        setattr(self.policy, "_predict", self._compiled_predict)  # noqa: B010 (an instance's method, set and removed)
+        try:
+            return super()._sample_action(learning_starts, action_noise, n_envs)
+        finally:
+            delattr(self.policy, "_predict")
 
     def _step_learning_rates(self) -> th.Tensor:
         """The step's ``learning_rates``: each plan's optimizer's current rate, in the plans' order."""
@@ -277,6 +321,7 @@ class CompiledUpdate(OffPolicyAlgorithm):
         return [
             *super()._excluded_save_params(),
             "_compiled_step",
+            "_compiled_action",
             "_adam_plans",
             "_pending_outputs",
             "_pending_calls",
