@@ -9,7 +9,7 @@ STAMP := $(VENV)/.installed-stamp
 # The CPU-only build: make install TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu
 TORCH_INDEX_URL ?=
 
-.PHONY: install demo test test-slow lint type bench docs clean
+.PHONY: install demo test test-slow lint type bench docs notebooks clean
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -47,6 +47,10 @@ bench: install
 docs: install
 	$(PY) -m sphinx -W --keep-going -n -b html docs docs/_build/html
 	@echo "Open docs/_build/html/index.html"
+
+# The notebooks run again on the ledger, their outputs (tables, figures) saved into them to read in Jupyter or on GitHub
+notebooks: install
+	$(VENV)/bin/jupyter-execute --inplace notebooks/*.ipynb
 
 clean:
 	rm -rf $(VENV) logs build docs/_build *.egg-info .pytest_cache .mypy_cache .ruff_cache

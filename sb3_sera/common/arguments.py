@@ -71,6 +71,13 @@ def _quoted(names: Iterable[str], conjunction: str = "or") -> str:
     return quoted[0] if len(quoted) == 1 else f"{', '.join(quoted[:-1])} {conjunction} {quoted[-1]}"
 
 
+class UnknownKeywordError(TypeError):
+    """
+    A keyword argument an algorithm does not take (Python's own ``TypeError`` for it, with the names it does take): a
+    user's mistake, which a command line says in one line.
+    """
+
+
 def check_keywords(
     algorithm: type,
     keywords: Mapping[str, Any],
@@ -113,7 +120,7 @@ def check_keywords(
             sentences.append(f"Did you mean {_quoted(close)}{'' if len(unknown) == 1 else f' for {keyword!r}'}?")
     public = [keyword for keyword in accepted if not keyword.startswith("_")]
     sentences.append(f"{name}'s keyword arguments are: {', '.join(public)}")
-    raise TypeError(" ".join(sentences))
+    raise UnknownKeywordError(" ".join(sentences))
 
 
 def checks_keywords(init: InitT) -> InitT:

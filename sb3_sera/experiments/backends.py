@@ -7,6 +7,7 @@ run its folder, makes the runs, and names the failed ones once all have ended.
 import contextlib
 import io
 import os
+import shlex
 import shutil
 import signal
 import sys
@@ -15,6 +16,7 @@ import time
 import traceback
 from collections.abc import Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from datetime import datetime, timezone
 from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
@@ -109,6 +111,24 @@ def execute(
     return [outcome for outcome in outcomes if isinstance(outcome, RunResult)]
 
 
+#: A run folder's record of each interruption, a line each: when, what the message said, the command that resumes
+STOPPED_LOG = "stopped.log"
+
+
+def log_interruption(folders: Sequence[Path], message: str) -> None:
+    """
+    Keep ``message`` (:func:`interruption_message`) in each of ``folders`` that is left (:data:`STOPPED_LOG`), with
+    when and the command line that resumes it: a terminal whose output was piped (``| tee``) may lose it with the
+    same Ctrl-C.
+    """
+    command = shlex.join([Path(sys.argv[0]).name, *sys.argv[1:]])
+    stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    for folder in folders:
+        if folder.is_dir():
+            with contextlib.suppress(OSError), (folder / STOPPED_LOG).open("a") as log:
+                log.write(f"{stamp}: {message}; the command: {command}\n")
+
+
 def interruption_message(finished: int, total: int, unfinished: Sequence[tuple[RunSpec, Path]]) -> str:
     """
     What an interruption leaves: how many runs finished, which unfinished ones the same command resumes and from
@@ -189,7 +209,9 @@ def _execute_locally(
         unfinished = [
             (spec, folder) for index, (spec, folder) in enumerate(zip(specs, folders, strict=True)) if index not in outcomes
         ]
-        raise Interrupted(interruption_message(len(outcomes), len(specs), unfinished)) from None
+        message = interruption_message(len(outcomes), len(specs), unfinished)
+        log_interruption([folder for _, folder in unfinished], message)
+        raise Interrupted(message) from None
     finally:
         if main_thread:
             signal.signal(signal.SIGTERM, previous)

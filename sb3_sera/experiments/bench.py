@@ -30,7 +30,7 @@ from typing import Any
 import yaml
 
 from sb3_sera.experiments.backends import execute
-from sb3_sera.experiments.checkpoint import CHECKPOINT_FREQ
+from sb3_sera.experiments.checkpoint import checkpoint_every
 from sb3_sera.experiments.engine import check_specs
 from sb3_sera.experiments.records import RunResult
 from sb3_sera.experiments.registry import algorithm_classes, check_task
@@ -166,20 +166,21 @@ def run_grid(
     ray_address: str | None = None,
     num_threads: int | None = 1,
     device: str = "auto",
-    checkpoint_freq: int = CHECKPOINT_FREQ,
+    checkpoint_freq: int | None = None,
     keep_checkpoints: bool = False,
     accept_older: str | None = None,
 ) -> list[RunResult]:
     """
     Run a grid file's runs (see :func:`load_grid`).
 
-    :param checkpoint_freq: steps between a run's checkpoints (0: none): an interrupted grid resumes each unfinished
-        run from its last one (:mod:`~sb3_sera.experiments.checkpoint`)
+    :param checkpoint_freq: steps between a run's checkpoints (0: none; None: :func:`.checkpoint_every`'s default): an
+        interrupted grid resumes each unfinished run from its last one (:mod:`~sb3_sera.experiments.checkpoint`)
     :param keep_checkpoints: keep a finished run's last checkpoint (removed by default)
     :param accept_older: why finished runs made by other code are read back (see :func:`.execute`)
     :return: the results, in the grid's order
     """
     specs = load_grid(path, num_threads, device)
     for spec in specs:
-        spec.checkpoint_freq, spec.keep_checkpoints = checkpoint_freq, keep_checkpoints
+        spec.checkpoint_freq = checkpoint_every(checkpoint_freq, spec.n_timesteps)
+        spec.keep_checkpoints = keep_checkpoints
     return execute(specs, out_dir, n_jobs=n_jobs, ray_address=ray_address, accept_older=accept_older)

@@ -27,6 +27,7 @@ import shutil
 import time
 import warnings
 from collections.abc import Callable, Iterator
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
@@ -53,6 +54,21 @@ from sb3_sera.experiments.env_state import (
 STEP_FILE = "step"
 #: Steps between checkpoints by default: a 50K-step run keeps at most 10K steps of work at risk
 CHECKPOINT_FREQ = 10_000
+#: Checkpoints a run shorter than three times ``CHECKPOINT_FREQ`` takes by default (a short run resumes too)
+SHORT_RUN_CHECKPOINTS = 3
+
+
+def checkpoint_every(checkpoint_freq: int | None, n_timesteps: int) -> int:
+    """
+    Steps between a run's checkpoints: ``checkpoint_freq`` as given (0: none), or by default (None)
+    ``CHECKPOINT_FREQ``, and a third of the budget where that is less, so that a run shorter than 30K steps also
+    resumes from a checkpoint.
+    """
+    if checkpoint_freq is not None:
+        return checkpoint_freq
+    return max(1, min(CHECKPOINT_FREQ, n_timesteps // SHORT_RUN_CHECKPOINTS))
+
+
 #: A run's checkpoint folder
 CHECKPOINT_DIR = "checkpoint"
 #: What of the model ``save`` leaves out that a run needs to go on
@@ -209,6 +225,19 @@ def remove_checkpoints(folder: Path) -> None:
 def has_checkpoint(folder: Path) -> bool:
     """Whether ``folder`` holds a whole checkpoint."""
     return checkpoint_dir(folder) is not None
+
+
+def checkpoint_stamp(folder: Path) -> str | None:
+    """
+    ``folder``'s whole checkpoint as a person reads it, "step 1,000 of 2026-11-27 07:02 UTC" (None: none). The date is
+    when it was written.
+    """
+    source = checkpoint_dir(folder)
+    if source is None:
+        return None
+    step = checkpoint_step(folder)
+    written = datetime.fromtimestamp((source / "state.pkl").stat().st_mtime, timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    return f"{'an unrecorded step' if step is None else f'step {step:,}'} of {written}"
 
 
 def checkpoint_step(folder: Path) -> int | None:

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import yaml
 
+from sb3_sera.common.arguments import UnknownKeywordError
 from sb3_sera.common.mujoco_log import route_mujoco_warnings
 from sb3_sera.experiments import bench, compare, intake, ledger, report, stats, zoo
 from sb3_sera.experiments.backends import Interrupted, default_threads
@@ -19,13 +20,16 @@ from sb3_sera.experiments.records import RunResult, env_name
 
 def _print_report(results: list[RunResult], out: str, name: str, reps: int, summary: str = "") -> None:
     """
-    Report the runs just made in a new ``<out>/reports/<name>_<n>/`` and print its tables, then ``summary`` (the
-    comparison in short), then where the report, its figures and the runs are.
+    Report the runs just made in a new ``<out>/reports/<name>_<n>/``; print its tables (where there is no
+    ``summary``) and where the report, its figures and the runs are, then ``summary`` (the comparison in short and
+    what it means), last, where the eye lands.
     """
     folder = report.next_report_folder(Path(out) / "reports", name)
     path = report.write_report(results, folder, reps=reps, sources=[out], log=lambda line: print(line, file=sys.stderr))
-    short = f"\n{summary}\n" if summary else ""
-    print(f"\n{path.read_text()}{short}\nReport: {path}{_figures(path)}\nRun folders: {out}/<variant>/<env_name>_<id>/")
+    tables = "" if summary else f"\n{path.read_text()}"
+    print(f"{tables}\nReport: {path}{_figures(path)}\nRun folders: {out}/<variant>/<env_name>_<id>/")
+    if summary:
+        print(f"\n{summary}")
 
 
 def _figures(report_path: Path) -> str:
@@ -53,7 +57,8 @@ def _compare(args: argparse.Namespace) -> None:
         keep_checkpoints=args.keep_checkpoints,
         accept_older=args.accept_older,
     )
-    _print_report(results, out=args.out, name=env_name(args.env), reps=args.reps, summary=compare.summary(results, args.algos))
+    summary = f"{compare.summary(results, args.algos)}\n{compare.reading(results, args.algos)}"
+    _print_report(results, out=args.out, name=env_name(args.env), reps=args.reps, summary=summary)
 
 
 def _bench(args: argparse.Namespace) -> None:
@@ -87,7 +92,7 @@ def _report(args: argparse.Namespace) -> None:
 
 
 def _ledger_add(args: argparse.Namespace) -> None:
-    outcome = intake.add_runs(args.sources, args.ledger, unclaimed=args.unclaimed)
+    outcome = intake.add_runs(args.sources, args.ledger, unclaimed=args.unclaimed, below_budget=args.below_budget)
     for folder in outcome.added:
         enters = outcome.enters.get(folder) or []
         print(f"added {folder}" + (f": enters {', '.join(enters)}" if enters else ": enters no declared claim"))
@@ -118,8 +123,9 @@ def _add_run_flags(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--checkpoint-freq",
         type=int,
-        default=CHECKPOINT_FREQ,
-        help="steps between a run's checkpoints, from which the same command resumes an interrupted run (0: none)",
+        default=None,
+        help="steps between a run's checkpoints, from which the same command resumes an interrupted run (0: none; "
+        f"default: {CHECKPOINT_FREQ:,}, or a third of the budget where that is less)",
     )
     parser.add_argument("--keep-checkpoints", action="store_true", help="keep a finished run's last checkpoint")
     parser.add_argument(
@@ -235,6 +241,11 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="also add runs that enter no claim the ledger declares (by default refused, naming why)",
     )
+    led_add.add_argument(
+        "--below-budget",
+        action="store_true",
+        help="with --unclaimed, also add runs shorter than every claim's budget (a demo's: by default refused)",
+    )
     led_add.set_defaults(func=_ledger_add)
     led_report = led_commands.add_parser(
         "report", help="regenerate docs/results/ (report, figures, results page) and the README's headline from the ledger"
@@ -259,7 +270,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         # rl-zoo3 parses these arguments itself: every zoo flag keeps working
         try:
             zoo.run_zoo(argv[0], argv[1:])
-        except ValueError as error:
+        except (ValueError, UnknownKeywordError) as error:
             sys.exit(f"sb3-sera {argv[0]}: error: {' '.join(str(error).split())}")
         return
     parser = build_parser()
@@ -270,7 +281,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         _exit(130, f"sb3-sera {args.command}: interrupted")
     except Interrupted as error:
         _exit(130, f"sb3-sera {args.command}: {error}")
-    except (ValueError, RuntimeError, FileNotFoundError, yaml.YAMLError) as error:
+    except (ValueError, UnknownKeywordError, RuntimeError, FileNotFoundError, yaml.YAMLError) as error:
         # A user's mistake or a failed run: one line, no traceback
         message = " ".join(str(error).split())
         parser.exit(2 if isinstance(error, ValueError) else 1, f"sb3-sera {args.command}: error: {message}\n")

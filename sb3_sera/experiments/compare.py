@@ -11,7 +11,7 @@ from typing import Any
 
 from sb3_sera.experiments import stats
 from sb3_sera.experiments.backends import default_threads, execute
-from sb3_sera.experiments.checkpoint import CHECKPOINT_FREQ
+from sb3_sera.experiments.checkpoint import checkpoint_every
 from sb3_sera.experiments.engine import check_specs
 from sb3_sera.experiments.policy_kwargs import parse_value
 from sb3_sera.experiments.records import FINAL_EVALUATIONS, RunResult
@@ -65,7 +65,7 @@ def run_comparison(
     device: str = "auto",
     progress_bar: bool = True,
     studies: Sequence[str] = (),
-    checkpoint_freq: int = CHECKPOINT_FREQ,
+    checkpoint_freq: int | None = None,
     keep_checkpoints: bool = False,
     accept_older: str | None = None,
 ) -> list[RunResult]:
@@ -78,8 +78,8 @@ def run_comparison(
     :param num_threads: torch threads per run (default: the cores divided among the ``n_jobs`` runs)
     :param studies: shared settings the algorithms may differ in (every other one must be the same for all:
         :func:`~sb3_sera.experiments.specs.check_matched`)
-    :param checkpoint_freq: steps between a run's checkpoints (0: none): the same command resumes an interrupted
-        run from its last one
+    :param checkpoint_freq: steps between a run's checkpoints (0: none; None: :func:`.checkpoint_every`'s default):
+        the same command resumes an interrupted run from its last one
     :param keep_checkpoints: keep a finished run's last checkpoint (removed by default)
     :param accept_older: why finished runs made by other code are read back (see :func:`.execute`)
     :return: the results, ordered as ``algos`` x ``seeds``
@@ -116,7 +116,8 @@ def run_comparison(
     ]
     for spec in specs:
         spec.studies = list(studies)
-        spec.checkpoint_freq, spec.keep_checkpoints = checkpoint_freq, keep_checkpoints
+        spec.checkpoint_freq = checkpoint_every(checkpoint_freq, n_timesteps)
+        spec.keep_checkpoints = keep_checkpoints
     check_specs(specs)
     check_matched(specs)
     return execute(specs, out_dir, n_jobs=n_jobs, progress_bar=progress_bar, accept_older=accept_older)
@@ -152,3 +153,58 @@ def summary(results: Sequence[RunResult], algos: Sequence[str]) -> str:
             verdict = f"p {decision.p:.3g}: " + (ahead if decision.p < ALPHA else "no difference shown")
         lines.append(f"{head} {interval}; {verdict}")
     return "\n".join(lines)
+
+
+def reading(results: Sequence[RunResult], algos: Sequence[str]) -> str:
+    """
+    What :func:`summary` means at its budget, for someone new to it: whether each algorithm learned (its first
+    evaluation against its final return), what runs this many can decide, and how to get a comparison that can.
+    """
+    by_algo = {algo: [r for r in results if r.variant == algo] for algo in algos}
+    learned = []
+    for algo, runs in by_algo.items():
+        firsts = [(run.timesteps[0], run.returns[0]) for run in runs if run.timesteps]
+        if firsts:
+            start = sum(value for _, value in firsts) / len(firsts)
+            final = sum(run.final_return for run in runs) / len(runs)
+            learned.append(f"{algo} {start:.0f} at step {firsts[0][0]:,} -> {final:.0f}")
+    lines = ["What it means:"]
+    if learned:
+        lines.append(f"  Learning (mean evaluation return, first -> final): {'; '.join(learned)}.")
+    first, *others = algos
+    sizes = [len(runs) for runs in by_algo.values()]
+    needed = runs_to_decide()
+    budget = max((r.n_timesteps for r in results), default=0)
+    elsewhere = "the ledger compares at the paper's budgets, 5 to 30 runs an arm: docs/results/index.md"
+    for other in others:
+        x = [r.final_return for r in by_algo[first]]
+        y = [r.final_return for r in by_algo[other]]
+        if min(len(x), len(y)) < 2 or stats.decide(x, y, ALPHA).p is None:
+            lines.append(
+                f"  {min(sizes)} run(s) a side cannot tell {first} from {other} at p < {ALPHA} whatever they score: "
+                f"these runs show that each trains, not which is better. A test that can decide needs {needed} runs a "
+                f"side or more (--seeds {' '.join(map(str, range(needed)))}); {elsewhere}."
+            )
+            continue
+        decision = stats.decide(x, y, ALPHA)
+        assert decision.p is not None
+        if decision.p < ALPHA:
+            lines.append(
+                f"  {first} {'ahead of' if decision.difference > 0 else 'behind'} {other} on this task at {budget:,} steps "
+                f"(p {decision.p:.3g}): one task at one budget, which says little of longer runs or other tasks; "
+                f"{elsewhere}."
+            )
+        else:
+            lines.append(
+                f"  No difference shown between {first} and {other}: the interval allows anything from "
+                f"{decision.low:+.1f} to {decision.high:+.1f}, and more runs (--seeds) narrow it; {elsewhere}."
+            )
+    return "\n".join(lines)
+
+
+def runs_to_decide(threshold: float = ALPHA) -> int:
+    """The fewest runs a side (equal sides) at which :func:`.stats.decide` can give a p below ``threshold``."""
+    n = 2
+    while stats.smallest_p_value(n, n) >= threshold:
+        n += 1
+    return n

@@ -205,8 +205,8 @@ def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
             callback.eval_env.close()
             aside = set_aside(folder, spec.env_id, error)
             notice(
-                f"{folder}: its checkpoint cannot be loaded ({type(error).__name__}: {error}): the run is kept as "
-                f"{aside.name}, and starts again from step 0 in {folder.name}"
+                f"{folder}: not resumed: its checkpoint cannot be loaded ({type(error).__name__}: {error}); the run "
+                f"is kept as {aside.name}, and starts again from step 0 in {folder.name}"
             )
             callback = make_callback()
         else:
@@ -217,6 +217,7 @@ def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
                 "code_after": args.get("git_commit"),
             }
             write_atomic(folder / RESUMES_FILE, json.dumps([*_resumes(folder), resume]))
+            notice(f"{folder}: resumed from step {model.num_timesteps:,}")
     if model is None:
         model = make_model(spec, make_env(str(folder)), tensorboard_log=str(folder))
     callbacks: list[BaseCallback] = [callback, ProgressFile(folder / PROGRESS_FILE)]

@@ -22,7 +22,7 @@ from stable_baselines3.sac import SAC
 from torch import nn
 
 from sb3_sera.common.capabilities import OwnTDTargets, PerCriticRates, as_the_model_sees, capability
-from sb3_sera.sera.aggregation import correlation_matrix, mean_off_diagonal
+from sb3_sera.common.correlation import correlation_matrix, mean_off_diagonal
 
 #: Files written beside ``evaluations.npz`` in the callback's ``log_path``
 BIAS_FILE = "initial_state_bias.npz"

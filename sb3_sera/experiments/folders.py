@@ -24,7 +24,7 @@ from typing import Any
 
 import yaml
 
-from sb3_sera.experiments.checkpoint import has_checkpoint
+from sb3_sera.experiments.checkpoint import checkpoint_stamp, has_checkpoint
 from sb3_sera.experiments.provenance import code_difference
 from sb3_sera.experiments.records import (
     RESULT_FILE,
@@ -98,7 +98,7 @@ def assign_folders(
             if finished:
                 notice(f"{folder}: finished by the same code: read back")
             elif resumable:
-                notice(f"{folder}: interrupted: resumed there from its last checkpoint")
+                notice(f"{folder}: stopped; its last checkpoint is at {checkpoint_stamp(folder)}")
             else:
                 notice(f"{folder}: unfinished, no checkpoint: run again there from step 0")
             match = folder

@@ -123,13 +123,38 @@ def claims_entered(claims: Sequence[Claim], args: dict[str, Any]) -> list[str]:
     ]
 
 
-def add_runs(sources: Sequence[str | Path], ledger: str | Path = LEDGER_DIR, unclaimed: bool = False) -> AddOutcome:
+def _unclaimed_refusal(
+    args: dict[str, Any], claims: Sequence[Claim], declared_in: Path, unclaimed: bool, below_budget: bool
+) -> str | None:
+    """
+    Why a run that enters no claim is refused: it is, unless ``unclaimed``; and a run shorter than every claim's
+    budget (a demo's) is, unless ``below_budget`` too. None: accepted.
+    """
+    if not unclaimed:
+        return (
+            f"it enters no claim declared in {declared_in} ({args.get('variant') or args['algo']} on {args['env']} at "
+            f"{args['n_timesteps']} steps, seed {args.get('seed')}): add it with --unclaimed if it belongs in the "
+            "ledger all the same"
+        )
+    shortest = min((claim.n_timesteps for claim in claims), default=0)
+    if args["n_timesteps"] < shortest and not below_budget:
+        return (
+            f"{args['n_timesteps']:,} steps is below every claim's budget (the shortest is {shortest:,}), as a demo's "
+            "or a test's run: add it with --unclaimed --below-budget if the ledger should keep it"
+        )
+    return None
+
+
+def add_runs(
+    sources: Sequence[str | Path], ledger: str | Path = LEDGER_DIR, unclaimed: bool = False, below_budget: bool = False
+) -> AddOutcome:
     """
     Copy the finished runs under ``sources`` (``<source>/<variant>/<env_name>_<id>/``) into the ledger, each under the
     next free id of its variant and task. Every file of every run is checked first (records parse, evaluations and
     per-evaluation records load and cover the budget); runs already there, unfinished, damaged or without their
     commit are refused by name, and so, in a ledger that declares claims, is a run that enters none of them (its
-    task, budget, variant or seed in no claim: a toy run, say) unless ``unclaimed``. The accepted runs are copied
+    task, budget, variant or seed in no claim: a toy run, say) unless ``unclaimed``, and with ``unclaimed`` still a run
+    shorter than every claim's budget (a demo's), unless ``below_budget`` too. The accepted runs are copied
     into a hidden staging folder, then renamed into place; any error on the way removes what was placed and the
     staging folder, so the ledger gets all of them or none.
     """
@@ -154,12 +179,8 @@ def add_runs(sources: Sequence[str | Path], ledger: str | Path = LEDGER_DIR, unc
             if reason is None and identity in known:
                 reason = "the ledger already has this run (same algorithm, variant, task, budget, settings and seed)"
             enters = [] if claims is None else claims_entered(claims, args)
-            if reason is None and claims is not None and not enters and not unclaimed:
-                reason = (
-                    f"it enters no claim declared in {ledger / CLAIMS_FILE} ({args.get('variant') or args['algo']} on "
-                    f"{args['env']} at {args['n_timesteps']} steps, seed {args.get('seed')}): add it with --unclaimed "
-                    "if it belongs in the ledger all the same"
-                )
+            if reason is None and claims is not None and not enters:
+                reason = _unclaimed_refusal(args, claims, ledger / CLAIMS_FILE, unclaimed, below_budget)
             if reason is not None:
                 outcome.refused.append(Skipped(str(folder), reason))
                 continue

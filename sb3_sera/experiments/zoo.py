@@ -373,7 +373,9 @@ def run_zoo(command: str, argv: Sequence[str]) -> None:
     saved = sys.argv
     sys.argv = [f"sb3-sera {command}", *args]
     # A train that fails before its first evaluation or model leaves no run folder behind
-    runs = Path(_flag_value(args, "-f", "--log-folder") or "logs") / (_flag_value(args, "--algo") or "ppo")
+    log_folder = Path(_flag_value(args, "-f", "--log-folder") or "logs")
+    runs = log_folder / (_flag_value(args, "--algo") or "ppo")
+    made = [folder for folder in (log_folder, runs) if not folder.exists()]
     before = set(runs.iterdir()) if runs.is_dir() else set()
     try:
         with _CheckpointedTrain(args, every) if command == "train" else nullcontext():
@@ -383,6 +385,10 @@ def run_zoo(command: str, argv: Sequence[str]) -> None:
             for folder in set(runs.iterdir()) - before:
                 if folder.is_dir() and not any(folder.glob("*.zip")) and not any(folder.glob("evaluations.npz")):
                     shutil.rmtree(folder, ignore_errors=True)
+            # and the log and algorithm folders it made, where they stayed empty
+            for folder in reversed(made):
+                with suppress(OSError):
+                    folder.rmdir()
         raise
     finally:
         sys.argv = saved

@@ -2,8 +2,8 @@
 Ensemble aggregation rules of SERA (paper section 4.1, SPEC section 1, steps 2-4, 7 and 8).
 
 Every function here is a pure function of tensors of critic values with shape ``(batch_size, n_critics)``,
-unit-tested on hand-computed numbers; SERASAC calls them on single-agent and CTDE tasks alike, the evaluations'
-critic diagnostics call the correlation helpers.
+unit-tested on hand-computed numbers; SERASAC calls them on single-agent and CTDE tasks alike. The correlations they
+summarize are :mod:`sb3_sera.common.correlation`'s, which the evaluations' critic diagnostics of every algorithm share.
 """
 
 from collections.abc import Callable
@@ -11,6 +11,8 @@ from dataclasses import dataclass
 from typing import Literal, NamedTuple, get_args
 
 import torch as th
+
+from sb3_sera.common.correlation import correlation_matrix, mean_off_diagonal
 
 #: The names of :data:`TARGET_RULES` (a new rule adds its name here and its function there)
 TargetAggregation = Literal["sera", "mean", "median", "min"]
@@ -177,30 +179,6 @@ def ensemble_disagreement(q_values: th.Tensor) -> th.Tensor:
     """
     q_med = median_anchor(q_values)[0]
     return (q_values - q_med.unsqueeze(1)).abs().mean(dim=1)
-
-
-def correlation_matrix(values: th.Tensor) -> th.Tensor:
-    """
-    Pearson correlation of the columns of ``values`` over its rows (the batch), shape ``(K, K)``.
-
-    A column that is constant over the batch has no defined correlation: its entries count as zero.
-
-    Computed as ``torch.corrcoef`` computes it, operation for operation (the same values), but without its checks on
-    the data, so that the compiled gradient step traces it.
-
-    :param values: one column per critic, shape ``(batch_size, n_critics)``
-    """
-    columns = values.T
-    centered = columns - columns.mean(dim=1, keepdim=True)
-    covariance = centered @ centered.T / (columns.shape[1] - 1)
-    std = covariance.diagonal().sqrt()
-    return th.nan_to_num((covariance / std[:, None] / std[None, :]).clamp(-1, 1), nan=0.0)
-
-
-def mean_off_diagonal(matrix: th.Tensor) -> th.Tensor:
-    """Mean of the off-diagonal entries of a square ``(K, K)`` matrix, ``K >= 2``."""
-    n = matrix.shape[0]
-    return (matrix.sum() - matrix.diagonal().sum()) / (n * (n - 1))
 
 
 def critic_correlation(q_values: th.Tensor) -> th.Tensor:

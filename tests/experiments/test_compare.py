@@ -23,10 +23,11 @@ def test_compare_cli_end_to_end(tmp_path, capsys):
     argv += ["--num-threads", "1", "--device", "cpu", "-params", "learning_starts:100", "serasac:sera_alpha:0.3"]
     main(argv)
     printed = capsys.readouterr().out
-    assert "| serasac | 1 |" in printed and "| sac | 1 |" in printed
-    # The comparison in short comes last, before where the report and runs are
+    # Where the report and the runs are, then the comparison in short and what it means, last (the tables: in the file)
     short = printed[printed.index("In short: final return (mean of the last 3 evaluations) on Pendulum-v1 at 240 steps") :]
-    assert short.index("serasac - sac: no interval from one run a side") < short.index("Report: ")
+    assert printed.index("Report: ") < printed.index("In short") and "| serasac | 1 |" not in printed
+    assert short.index("serasac - sac: no interval from one run a side") < short.index("What it means:")
+    assert "1 run(s) a side cannot tell serasac from sac at p < 0.05" in short
     # A run folder of compare is a zoo run folder: rl-zoo3's enjoy opens it
     main(["enjoy", "--algo", "serasac", "--env", "Pendulum-v1", "-f", str(out), "--exp-id", "1", "-n", "10", "--no-render"])
     # The report's figures are named after its path
@@ -236,6 +237,25 @@ def test_the_summary_gives_the_difference_its_interval_and_a_decision_only_where
     finals = {"serasac": [-200.0 + i for i in range(6)], "sac": [-260.0 + 3 * i for i in range(6)]}
     assert compare.summary(_results(finals), ["serasac", "sac"]).endswith("; p 0.00216: serasac ahead")
     assert compare.summary(_results(finals), ["sac", "serasac"]).endswith("; p 0.00216: sac behind")
+
+
+def test_the_reading_says_what_the_runs_can_decide_and_where_a_real_comparison_is():
+    results = _results({"serasac": [-200.0, -180.0], "sac": [-300.0, -250.0]})
+    for result in results:
+        result.timesteps, result.returns = [1000, 6000], [-1200.0, result.final_return]
+    text = compare.reading(results, ["serasac", "sac"])
+    assert "Learning (mean evaluation return, first -> final): serasac -1200 at step 1,000 -> -190; sac -1200" in text
+    # 2 runs a side: the smallest p is 1/3; 4 a side (2 of 70 splits: 0.029) is the fewest that can decide
+    assert compare.runs_to_decide() == 4
+    assert "2 run(s) a side cannot tell serasac from sac at p < 0.05" in text and "--seeds 0 1 2 3)" in text
+    finals = {"serasac": [-200.0 + i for i in range(6)], "sac": [-260.0 + 3 * i for i in range(6)]}
+    assert "serasac ahead of sac on this task at 6,000 steps (p 0.00216)" in compare.reading(
+        _results(finals), ["serasac", "sac"]
+    )
+    level = {"serasac": [-200.0, -210.0, -190.0, -205.0], "sac": [-201.0, -195.0, -211.0, -199.0]}
+    assert "No difference shown between serasac and sac: the interval allows anything from" in compare.reading(
+        _results(level), ["serasac", "sac"]
+    )
 
 
 @pytest.mark.skipif(th.cuda.is_available(), reason="a machine without CUDA")

@@ -164,7 +164,8 @@ def test_a_run_whose_checkpoint_cannot_be_loaded_is_kept_aside_and_starts_again(
     engine.train_one(spec, folder)
     aside = folder.with_name(f"{folder.name}.unresumable-UnpicklingError")
     said = capsys.readouterr().err
-    assert f"{folder}: its checkpoint cannot be loaded (UnpicklingError: " in said and aside.name in said
+    assert f"{folder}: not resumed: its checkpoint cannot be loaded (UnpicklingError: " in said and aside.name in said
+    assert "resumed from step" not in said
     # Nothing is lost: the old run's checkpoint, monitor rows and reason kept; the run made again from step 0
     assert (aside / CHECKPOINT_DIR / "state.pkl").exists() and (aside / "0.monitor.csv").read_text() == monitor_rows
     assert "is not plain data" in (aside / SET_ASIDE_FILE).read_text()

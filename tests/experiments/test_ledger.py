@@ -240,7 +240,11 @@ def test_a_ledger_with_claims_refuses_runs_that_enter_none_unless_asked(bench_ou
         and "at 200 steps, seed 0): add it with --unclaimed" in skipped.reason
         for skipped in outcome.refused
     )
-    assert intake.add_runs([bench_out], results, unclaimed=True).added
+    # Unclaimed and shorter than every claim's budget (a demo's runs): refused again, unless that is said too
+    outcome = intake.add_runs([bench_out], results, unclaimed=True)
+    assert not outcome.added and "200 steps is below every claim's budget (the shortest is " in outcome.refused[0].reason
+    assert "add it with --unclaimed --below-budget" in outcome.refused[0].reason
+    assert intake.add_runs([bench_out], results, unclaimed=True, below_budget=True).added
     # A claim about them: each run enters it, by id
     fresh = tmp_path / "claimed"
     fresh.mkdir()

@@ -30,6 +30,8 @@ def test_a_run_digests_the_modules_its_algorithm_and_task_load_and_the_engine_al
     assert "sb3_sera.experiments.engine" in stock and "sb3_sera.experiments.env_state" in stock
     # Stock SAC's runs do not hang on SERASAC's algorithm nor on the bookkeeping of folders and records
     assert "sb3_sera.sera.sera" not in stock and "sb3_sera.sera.sera" in sera
+    # ... nor on SERA's aggregation, which the evaluations' critic diagnostics once imported for their correlations
+    assert "sb3_sera.sera.aggregation" not in stock and "sb3_sera.common.correlation" in stock
     assert not {"sb3_sera", "sb3_sera.experiments.folders", "sb3_sera.experiments.records"} & set(stock)
     assert {"sb3_sera.ctde.algorithms", "sb3_sera.ctde.tasks"} <= set(multi_agent) and "sb3_sera.sera.sera" not in multi_agent
     assert len({run_code_digest(SAC, "Pendulum-v1"), run_code_digest(SERASAC, "Pendulum-v1")}) == 2

@@ -210,6 +210,21 @@ def test_paper_figures_from_a_tiny_fixture(tmp_path):
     assert (out / "performance_profiles_3000.png").stat().st_size > 10_000
 
 
+def test_panels_without_a_value_or_with_saturated_correlations_are_named_not_drawn(tmp_path):
+    root = tmp_path / "runs"
+    for seed in (0, 1):
+        folder = fake_run(root, "serasac", seed + 1, seed, [0.0, 1.0, 2.0], n_critics=3)
+        records = dict(np.load(folder / DIAGNOSTICS_FILE))
+        records["mc_error_corr"] = np.full(3, np.nan)  # no state kept a Monte Carlo return
+        records["critic_corr_matrix"] = np.ones((3, 3, 3))  # the values of trained critics: 1.000 as printed
+        np.savez(folder / DIAGNOSTICS_FILE, **records)
+    report = report_roots([root], tmp_path / "report", reps=REPS).read_text()
+    assert "Critic diagnostics not drawn: normalised TD-target variance (Fig. 4c), no run recorded td_target" in report
+    assert "; critics' error correlation vs Monte Carlo returns (Fig. 5), no finite value: no evaluation state" in report
+    assert "Not drawn: values Q_i, every pair of critics at r >= 0.9995 in every group." in report
+    assert "(sb3_sera-HalfCheetah-6x1-v0_3000_correlations.png)" in report  # the TD errors' row is drawn
+
+
 def test_report_refuses_to_overwrite_and_needs_runs(tmp_path, capsys):
     fake_run(tmp_path / "runs", "serasac", 1, 0, [0.0, 1.0, 2.0])
     main(["report", str(tmp_path / "runs"), "--out", str(tmp_path / "out"), "--reps", str(REPS)])
@@ -324,7 +339,7 @@ def test_figures_draw_no_band_below_three_runs_and_say_why_a_panel_is_empty():
     pyplot().close(fig)
     assert _empty_reason("critic_lr", {1: [{"timesteps": np.array([1])}]}).startswith("no run recorded critic_lr")
     nan = {1: [{"mc_error_corr": np.array([np.nan])}]}
-    assert _empty_reason("mc_error_corr", nan).startswith("no finite value: the Monte Carlo errors")
+    assert _empty_reason("mc_error_corr", nan).startswith("no finite value: no evaluation state had a complete Monte")
 
 
 def test_the_report_prints_shared_settings_and_marks_undeclared_differences(tmp_path):

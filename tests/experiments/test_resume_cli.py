@@ -13,6 +13,7 @@ import pytest
 import torch as th
 
 from sb3_sera import SERASAC
+from sb3_sera.experiments.backends import STOPPED_LOG
 from sb3_sera.experiments.records import load_result
 from tests.helpers import CTDE_TASK, ctrl_c, killed_at_exit, start_command
 
@@ -98,9 +99,14 @@ def test_a_run_interrupted_by_ctrl_c_resumes_from_the_command_line_to_the_uninte
     finish(compare(task, episode, straight, checkpoint_freq=0))
     stderr = interrupt_after_checkpoint(compare(task, episode, resumed, EVERY), resumed, 2 * EVERY)
     assert "Traceback" not in stderr and "the same command resumes serasac seed 0" in stderr
-    assert "resumed there from its last checkpoint" in finish(compare(task, episode, resumed, EVERY))
+    # The run folder keeps what the interruption said (a piped terminal may lose it), and the next command says what
+    # it found and what it did
     a, b = run_folder(straight), run_folder(resumed)
+    assert "the same command resumes serasac seed 0" in (b / STOPPED_LOG).read_text()
+    said = finish(compare(task, episode, resumed, EVERY))
     (resume,) = load_result(b).resumes
+    assert f"{b}: stopped; its last checkpoint is at step {resume['from_step']:,} of 20" in said
+    assert f"{b}: resumed from step {resume['from_step']:,}" in said
     assert resume["from_step"] >= 2 * EVERY
     assert assert_same_end(a, b, f"{task.replace('/', '-')}.zip") >= STEPS // episode - 1
 

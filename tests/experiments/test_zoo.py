@@ -249,7 +249,12 @@ def test_train_reads_params_without_executing_them(tmp_path, monkeypatch):
     # A value the model refuses once rl-zoo3 has made the run's folder: the folder goes with the failed start
     with pytest.raises(SystemExit, match=r"sera_alpha=2.0 is out of range"):
         main(["train", *base, "-params", "sera_alpha:2.0"])
-    assert not list((tmp_path / "logs" / "serasac").iterdir())
+    assert not (tmp_path / "logs").exists()
+    # A key mistyped in a hyperparameter file reaches the model (the zoo passes it on): one line, no folder either
+    (tmp_path / "hp.yml").write_text("Pendulum-v1:\n  n_timesteps: 300\n  policy: MlpPolicy\n  critic_lr_mx: 0.001\n")
+    with pytest.raises(SystemExit, match=r"unexpected keyword argument 'critic_lr_mx'. Did you mean 'critic_lr_max'"):
+        main(["train", "--algo", "serasac", "--env", "Pendulum-v1", "-conf", "hp.yml"])
+    assert not (tmp_path / "logs").exists()
 
 
 def test_the_zoo_reads_the_capabilities_the_classes_declare():

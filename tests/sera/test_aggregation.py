@@ -7,6 +7,7 @@ from typing import get_args
 import pytest
 import torch as th
 
+from sb3_sera.common.correlation import correlation_matrix
 from sb3_sera.sera.aggregation import (
     ACTOR_AGGREGATIONS,
     TARGET_AGGREGATIONS,
@@ -14,7 +15,6 @@ from sb3_sera.sera.aggregation import (
     SERAOptions,
     TargetAggregation,
     aggregate_target,
-    correlation_matrix,
     critic_correlation,
     ensemble_disagreement,
     median_anchor,

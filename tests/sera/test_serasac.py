@@ -201,28 +201,59 @@ def test_entropy_target_is_adjusted_by_disagreement():
     assert model.logger.name_to_value["train/target_entropy_eff"] == -1.0
 
 
+@pytest.fixture(scope="module")
+def default_trained() -> dict[str, th.Tensor]:
+    """What SERASAC with its defaults learns in the variants' budget and seed."""
+    return snapshot(SERASAC("MlpPolicy", ENV_ID, seed=0, **SMALL).learn(VARIANT_STEPS))
+
+
+#: The variants' budget: 70 gradient steps after SMALL's learning_starts
+VARIANT_STEPS = 120
+
+
 @pytest.mark.parametrize(
-    "kwargs",
+    ("kwargs", "effect"),
     [
-        dict(target_aggregation="mean"),
-        dict(target_aggregation="median"),
-        dict(target_aggregation="min"),
-        dict(sera_include_median=True),
-        dict(sera_temperature_mode="relative"),
-        dict(actor_aggregation="mean"),
-        dict(actor_aggregation="min"),
-        dict(adaptive_critic_lr=False),
-        dict(ent_coef=0.1),
-        dict(n_steps=3),
-        dict(policy_kwargs=dict(n_critics=4)),
-        dict(policy_kwargs=dict(share_features_extractor=True)),
-        dict(use_sde=True),
+        (dict(target_aggregation="mean"), None),
+        (dict(target_aggregation="median"), None),
+        (dict(target_aggregation="min"), None),
+        (dict(sera_include_median=True), None),
+        (dict(sera_temperature_mode="relative"), None),
+        (dict(actor_aggregation="mean"), None),
+        (dict(actor_aggregation="min"), None),
+        (
+            dict(adaptive_critic_lr=False),
+            lambda model, logged: {logged[f"train/critic_lr_{i}"] for i in range(5)} == {model.learning_rate},
+        ),
+        (
+            dict(ent_coef=0.1),
+            lambda model, logged: logged["train/ent_coef"] == pytest.approx(0.1) and model.ent_coef_optimizer is None,
+        ),
+        (dict(n_steps=3), lambda model, logged: type(model.replay_buffer).__name__ == "NStepReplayBuffer"),
+        (
+            dict(policy_kwargs=dict(n_critics=4)),
+            lambda model, logged: "train/critic_lr_4" not in logged and model.critic.n_critics == 4,
+        ),
+        (dict(use_sde=True), lambda model, logged: model.actor.use_sde),
     ],
 )
-def test_variants_train(kwargs):
-    params = {**SMALL, **kwargs}
-    model = SERASAC("MlpPolicy", ENV_ID, seed=0, **params).learn(120)
+def test_variants_train_and_take_effect(kwargs, effect, default_trained):
+    model = SERASAC("MlpPolicy", ENV_ID, seed=0, **{**SMALL, **kwargs}).learn(VARIANT_STEPS)
+    logged = model.logger.name_to_value
+    assert np.isfinite(logged["train/critic_loss"])
+    # An option ignored would leave training bit for bit the default's (same seed, one thread)
+    trained = snapshot(model)
+    assert trained.keys() != default_trained.keys() or any(not th.equal(trained[k], default_trained[k]) for k in trained)
+    assert effect is None or effect(model, logged)
+
+
+def test_a_shared_features_extractor_is_the_actors():
+    # With MlpPolicy's extractor (a flatten, no parameters) sharing it changes no number: shown by identity instead
+    model = SERASAC("MlpPolicy", ENV_ID, seed=0, policy_kwargs=dict(share_features_extractor=True), **SMALL).learn(60)
+    assert model.critic.features_extractor is model.actor.features_extractor
     assert np.isfinite(model.logger.name_to_value["train/critic_loss"])
+    default = SERASAC("MlpPolicy", ENV_ID, **SMALL)
+    assert default.critic.features_extractor is not default.actor.features_extractor
 
 
 def test_sac_equivalent_configuration():

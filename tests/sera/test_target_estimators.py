@@ -1,34 +1,19 @@
 """
-The TD-target estimator benchmark (benchmarks/target_estimators.py) against hand-checkable values, and the paper's
+The TD-target estimator study (sb3_sera.experiments.theory) against hand-checkable values, and the paper's
 Lemma 4.1 and Propositions 4.2-4.3 on synthetic ensembles, measured through the package's aggregation code.
 
 Sampling tolerances are four standard errors (or a stated margin far above them), so a test fails on a wrong
 formula or estimator, not on noise; every draw uses a fixed seed.
 """
 
-import importlib.util
 import itertools
 import math
-import sys
-from types import ModuleType
 
 import pytest
 import torch as th
 
-from tests.helpers import ROOT
+from sb3_sera.experiments import theory as te
 
-
-def _load_benchmark() -> ModuleType:
-    path = ROOT / "benchmarks" / "target_estimators.py"
-    spec = importlib.util.spec_from_file_location("target_estimators", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while the class is built
-    spec.loader.exec_module(module)
-    return module
-
-
-te = _load_benchmark()
 DRAWS = 100_000
 
 # Expected minimum of K independent standard normals (minus the expected maximum): K = 2: 1 / sqrt(pi);

@@ -159,73 +159,85 @@ DIAGNOSTIC_PANELS = (
 )
 
 
-def plot_diagnostics(groups: Sequence[RunGroup], path: Path, colors: dict[str, Any], reps: int) -> bool:
+def _finite_series(runs: Sequence[dict[str, np.ndarray]], key: str) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Each run's curve of ``key`` (a per-critic quantity: its mean over critics), evaluations without a value left out."""
+    series = []
+    for r in runs:
+        if key not in r:
+            continue
+        values = r[key] if r[key].ndim == 1 else r[key].mean(axis=1)
+        finite = np.isfinite(values)
+        if finite.any():
+            series.append((r["timesteps"][finite], values[finite]))
+    return series
+
+
+def plot_diagnostics(groups: Sequence[RunGroup], path: Path, colors: dict[str, Any], reps: int) -> str | None:
     """
-    One panel per quantity of :data:`DIAGNOSTIC_PANELS`, IQM over runs and interval per group; per-critic learning
-    rates summarized by their mean (line and band) and their smallest and largest (dotted). Returns whether any
-    group had diagnostics.
+    One panel per quantity of :data:`DIAGNOSTIC_PANELS` that some run recorded a value of, IQM over runs and interval
+    per group; per-critic learning rates summarized by their mean (line and band) and their smallest and largest
+    (dotted). A quantity without any value gets no panel.
+
+    :return: None where no group had diagnostics (no figure); else a sentence naming the quantities not drawn and
+        why ("" where all were drawn)
     """
     records = {id(group): [d for d in map(load_diagnostics, group.runs) if d is not None] for group in groups}
     if not any(records.values()):
-        return False
+        return None
+    panels = [panel for panel in DIAGNOSTIC_PANELS if any(_finite_series(runs, panel[0]) for runs in records.values())]
+    left_out = [f"{panel[1]}, {_empty_reason(panel[0], records)}" for panel in DIAGNOSTIC_PANELS if panel not in panels]
+    not_drawn = f"Critic diagnostics not drawn: {'; '.join(left_out)}." if left_out else ""
+    if not panels:
+        path.unlink(missing_ok=True)  # a report written over an older one keeps no stale figure
+        return not_drawn
     plt = pyplot()
-    fig, axes_grid = plt.subplots(2, 3, figsize=(15, 8.4))
+    n_columns = min(3, len(panels))
+    n_rows = -(-len(panels) // n_columns)
+    fig, axes_grid = plt.subplots(n_rows, n_columns, figsize=(5 * n_columns, 4.2 * n_rows), squeeze=False)
     axes = axes_grid.ravel()
+    for ax in axes[len(panels) :]:
+        ax.axis("off")
     styles = _linestyles(groups)
     for group in groups:
         runs = records[id(group)]
-        if not runs:
-            continue
         color = colors[group.variant]
-        for ax, (key, _, _) in zip(axes, DIAGNOSTIC_PANELS, strict=True):
-            having = [r for r in runs if key in r]
-            if not having:
-                continue
-            # Evaluations without a value (no Monte Carlo sample kept, say) are left out of the run's curve
-            series = []
-            for r in having:
-                values = r[key] if r[key].ndim == 1 else r[key].mean(axis=1)
-                finite = np.isfinite(values)
-                if finite.any():
-                    series.append((r["timesteps"][finite], values[finite]))
+        for ax, (key, _, _) in zip(axes, panels, strict=False):
+            series = _finite_series(runs, key)
             if not series:
                 continue
             _draw_band(ax, series, reps=reps, label=group.label, color=color, linestyle=styles[id(group)])
+            having = [r for r in runs if key in r]
             if having[0][key].ndim == 2:
                 for reduce in (np.min, np.max):
                     grid, matrix, _ = aligned([(r["timesteps"], reduce(r[key], axis=1)) for r in having])
                     ax.plot(grid, stats.iqm(matrix[:, None, :]), color=color, linestyle=":", linewidth=0.9)
-    for ax, (key, title, ylabel) in zip(axes, DIAGNOSTIC_PANELS, strict=True):
+    for ax, (key, title, ylabel) in zip(axes, panels, strict=False):
         ax.set_title(title, fontsize=10)
         ax.set_xlabel("environment steps")
         ax.set_ylabel(ylabel)
-        if ax.lines:
-            if key in ("td_target_var", "td_target_relative_var"):
-                ax.set_yscale("log")
-            ax.legend(fontsize="x-small")
-        else:
-            ax.text(0.5, 0.5, _empty_reason(key, records), ha="center", va="center", wrap=True, fontsize=9,
-                    transform=ax.transAxes)  # fmt: skip
+        if key in ("td_target_var", "td_target_relative_var"):
+            ax.set_yscale("log")
+        ax.legend(fontsize="x-small")
     fig.suptitle(
         "Critic diagnostics at each evaluation (1024 replayed transitions; Monte Carlo errors: the evaluation episodes' "
         "steps); IQM over runs, band: 95% bootstrap CI",
         fontsize=10,
     )
     save_figure(fig, path)
-    return True
+    return not_drawn
 
 
 def _empty_reason(key: str, records: dict[int, list[dict[str, np.ndarray]]]) -> str:
-    """Why a diagnostics panel has no curve: no run recorded the quantity, or none recorded a finite value of it."""
+    """Why a diagnostic has no curve: no run recorded the quantity, or none recorded a finite value of it."""
     recorded = [r for runs in records.values() for r in runs if key in r]
     if not recorded:
-        return f"no run recorded {key}\n(an older record, or an algorithm\nwithout this diagnostic)"
+        return f"no run recorded {key}: an older record, or an algorithm without this diagnostic"
     if key == "mc_error_corr":
         return (
-            "no finite value: the Monte Carlo errors\nneed evaluation episodes whose returns\n"
-            "differ between states (none kept)"
+            "no finite value: no evaluation state had a complete Monte Carlo return, which needs an episode that runs "
+            "past the discount's horizon after it"
         )
-    return f"no finite value of {key}\nat any evaluation"
+    return f"no finite value of {key} at any evaluation"
 
 
 def plot_auc_bars(groups: Sequence[RunGroup], path: Path, colors: dict[str, Any], reps: int) -> None:
@@ -267,6 +279,14 @@ def _off_diagonal_mean(matrix: np.ndarray) -> float:
     return float(matrix[~np.eye(len(matrix), dtype=bool)].mean())
 
 
+def _off_diagonal_min(matrix: np.ndarray) -> float:
+    return float(matrix[~np.eye(len(matrix), dtype=bool)].min())
+
+
+#: A correlation that prints as 1.000: a matrix row whose every pair reaches it is not drawn
+SATURATED = 0.9995
+
+
 def plot_correlation_matrices(groups: Sequence[RunGroup], path: Path, step: int | None) -> str | None:
     """
     The K x K correlation matrices of the critics (paper Fig. 5) of each ensemble group (K >= 3) at the evaluation
@@ -306,6 +326,18 @@ def plot_correlation_matrices(groups: Sequence[RunGroup], path: Path, step: int 
             panels.append((group, chosen))
     if not panels:
         return None
+    # A row whose every pair correlates at 1.000 as printed says nothing a sentence does not
+    saturated = [
+        (key, name)
+        for key, name in rows
+        if all(_off_diagonal_min(chosen[key][0]) >= SATURATED for _, chosen in panels if key in chosen)
+    ]
+    rows = [row for row in rows if row not in saturated]
+    chosen_step = "the last evaluation" if step is None else f"the evaluation nearest {step:,} steps"
+    note = "".join(f" Not drawn: {name}, every pair of critics at r >= {SATURATED} in every group." for _, name in saturated)
+    if not rows:
+        path.unlink(missing_ok=True)  # a report written over an older one keeps no stale figure
+        return f"Correlation matrices at {chosen_step}:{note}"
     plt = pyplot()
     fig, axes = plt.subplots(
         len(rows), len(panels), figsize=(3.4 * len(panels) + 1.5, 3.5 * len(rows)), squeeze=False, layout="constrained"
@@ -342,8 +374,7 @@ def plot_correlation_matrices(groups: Sequence[RunGroup], path: Path, step: int 
     fig.suptitle("Inter-critic correlation matrices (Fig. 5), one run per panel", fontsize=10)
     fig.savefig(path, dpi=110)
     plt.close(fig)
-    chosen_step = "the last evaluation" if step is None else f"the evaluation nearest {step:,} steps"
     return (
         f"Correlation matrices at {chosen_step}: each panel is the group's median run by mean off-diagonal r "
-        "(a critic's index means nothing across runs, so matrices are not averaged)."
+        f"(a critic's index means nothing across runs, so matrices are not averaged).{note}"
     )

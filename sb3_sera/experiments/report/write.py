@@ -7,6 +7,7 @@ figures), the across-tasks section of each budget, and the folders left out; :fu
 from collections import defaultdict
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 from sb3_sera.experiments import stats
 from sb3_sera.experiments.claims import Claim, ClaimResult, default_claims, evaluate
@@ -99,11 +100,12 @@ def write_report(
         if len(groups) > 1:
             plot_auc_bars(groups, path=folder / f"{stem}_auc.png", colors=colors, reps=reps)
             lines += [f"![{env_id} normalized AUC]({stem}_auc.png)", ""]
-        if plot_diagnostics(groups, path=folder / f"{stem}_diagnostics.png", colors=colors, reps=reps):
-            lines += [f"![{env_id} critic diagnostics]({stem}_diagnostics.png)", ""]
+        lines += _diagnostics_lines(groups, folder / f"{stem}_diagnostics.png", env_id, colors, reps)
         matrices = plot_correlation_matrices(groups, folder / f"{stem}_correlations.png", matrix_step)
+        if (folder / f"{stem}_correlations.png").exists():
+            lines += [f"![{env_id} critic correlation matrices]({stem}_correlations.png)", ""]
         if matrices is not None:
-            lines += [f"![{env_id} critic correlation matrices]({stem}_correlations.png)", "", matrices, ""]
+            lines += [matrices, ""]
     for budget in sorted({budget for _, budget in sections_by_key}):
         same_budget = [groups for (_, b), groups in sections_by_key.items() if b == budget]
         if len(same_budget) > 1:
@@ -193,3 +195,10 @@ def next_report_folder(parent: str | Path, name: str) -> Path:
     parent = Path(parent)
     taken = [int(p.name.rpartition("_")[2]) for p in parent.glob(f"{name}_*") if p.name.rpartition("_")[2].isdigit()]
     return parent / f"{name}_{max(taken, default=0) + 1}"
+
+
+def _diagnostics_lines(groups: Sequence[RunGroup], path: Path, env_id: str, colors: dict[str, Any], reps: int) -> list[str]:
+    """The critic diagnostics' figure (:func:`.plot_diagnostics`) as Markdown, and what it left out, if anything."""
+    not_drawn = plot_diagnostics(groups, path=path, colors=colors, reps=reps)
+    lines = [f"![{env_id} critic diagnostics]({path.name})", ""] if path.exists() else []
+    return lines + ([not_drawn, ""] if not_drawn else [])
