@@ -24,9 +24,9 @@ from typing import Any
 from tqdm import tqdm
 
 from sb3_sera.experiments.checkpoint import checkpoint_step, has_checkpoint
-from sb3_sera.experiments.engine import steps_done, train_one
+from sb3_sera.experiments.engine import PROGRESS_FILE, steps_done, train_one
 from sb3_sera.experiments.folders import assign_folders, output_lock
-from sb3_sera.experiments.records import RunResult, env_name
+from sb3_sera.experiments.records import RESULT_FILE, RunResult, env_name
 from sb3_sera.experiments.specs import RunSpec
 
 
@@ -170,6 +170,21 @@ class _OutputOrNothing(io.TextIOBase):
             sys.stderr.flush()
 
 
+def steps_before(specs: Sequence[RunSpec], folders: Sequence[Path]) -> list[int]:
+    """
+    The steps each run made before this command: a finished run's budget, an interrupted one's last checkpoint
+    (whose progress file, which counted past it, is removed: the run goes on from the checkpoint), else none.
+    """
+    done = []
+    for spec, folder in zip(specs, folders, strict=True):
+        if (folder / RESULT_FILE).exists():
+            done.append(spec.n_timesteps)
+        else:
+            (folder / PROGRESS_FILE).unlink(missing_ok=True)
+            done.append((checkpoint_step(folder) or 0) if has_checkpoint(folder) else 0)
+    return done
+
+
 def _execute_locally(
     specs: Sequence[RunSpec], folders: Sequence[Path], n_jobs: int | None, progress_bar: bool
 ) -> list[RunResult | BaseException]:
@@ -182,9 +197,15 @@ def _execute_locally(
     main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler) if main_thread else None
     total = sum(spec.n_timesteps for spec in specs)
+    before = steps_before(specs, folders)
     try:
         bar_output = _OutputOrNothing()
-        with tqdm(total=total, desc=f"{len(specs)} runs", unit="step", disable=not progress_bar, file=bar_output) as bar:
+        # The steps made before (finished runs, checkpoints) start the bar, so that its rate and time left count the
+        # steps made now only
+        bar = tqdm(
+            total=total, initial=sum(before), desc=f"{len(specs)} runs", unit="step", disable=not progress_bar, file=bar_output
+        )
+        with bar:
             futures = {
                 pool.submit(train_one, spec, folder): index
                 for index, (spec, folder) in enumerate(zip(specs, folders, strict=True))
@@ -196,7 +217,10 @@ def _execute_locally(
                     error = future.exception()
                     outcomes[futures[future]] = error if error is not None else future.result()
                 # Steps inside the runs: each worker writes its count every few hundred steps
-                steps = sum(steps_done(folder, spec.n_timesteps) for spec, folder in zip(specs, folders, strict=True))
+                steps = sum(
+                    max(steps_done(folder, spec.n_timesteps), start)
+                    for spec, folder, start in zip(specs, folders, before, strict=True)
+                )
                 bar.set_postfix_str(f"{len(outcomes)}/{len(specs)} runs ended")
                 bar.update(max(steps - bar.n, 0))
     except BaseException as error:

@@ -10,6 +10,11 @@ from pathlib import Path
 
 import pytest
 
+from sb3_sera.experiments.backends import steps_before
+from sb3_sera.experiments.checkpoint import CHECKPOINT_DIR, STEP_FILE
+from sb3_sera.experiments.engine import PROGRESS_FILE
+from sb3_sera.experiments.records import RESULT_FILE
+from sb3_sera.experiments.specs import make_spec
 from tests.helpers import ctrl_c, killed_at_exit, start_command
 
 GRID = """
@@ -82,6 +87,9 @@ def test_one_ctrl_c_stops_every_worker_with_the_output_piped_and_says_where_each
         bench.wait(timeout=30)
     assert bench.returncode == 130
     assert_training_stopped(monitor)
+    # What the lost output would have said is kept in the run's folder
+    (log,) = out.glob("sac/*/stopped.log")
+    assert "interrupted: 0 of 2 run(s) finished; the same command resumes sac seed 0" in log.read_text()
     # The same command again, told where it resumes
     with killed_at_exit(start_bench(tmp_path, out, "--checkpoint-freq", "300")) as again:
         deadline = time.monotonic() + 120
@@ -121,3 +129,18 @@ def test_two_commands_never_share_an_output_folder(tmp_path, command):
     finally:
         os.killpg(bench.pid, signal.SIGKILL)
         bench.wait(timeout=10)
+
+
+def test_the_progress_bar_starts_at_the_steps_made_before(tmp_path):
+    # Its rate and time left count the steps made now: a resumed run's checkpoint and a finished run start it
+    specs = [make_spec("sac", "sac", "Pendulum-v1", seed, n_timesteps=1000, eval_freq=500) for seed in range(3)]
+    finished, resumed, _ = folders = [tmp_path / name for name in ("finished", "resumed", "fresh")]
+    for folder in folders:
+        folder.mkdir()
+    (finished / RESULT_FILE).write_text("{}")
+    (resumed / CHECKPOINT_DIR).mkdir()
+    (resumed / CHECKPOINT_DIR / "state.pkl").write_bytes(b"")
+    (resumed / CHECKPOINT_DIR / STEP_FILE).write_text("400")
+    (resumed / PROGRESS_FILE).write_text("650")  # counted past the checkpoint before the interruption
+    assert steps_before(specs, folders) == [1000, 400, 0]
+    assert not (resumed / PROGRESS_FILE).exists()
