@@ -40,6 +40,7 @@ import multiprocessing
 import time
 import warnings
 from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 import compiled_vs_eager
@@ -163,14 +164,19 @@ def acting_ms(model: CompiledUpdate, compiled: bool, actions: int, cuda: bool) -
         model.compile_action = before
 
 
+def _train_calls(model: BaseAlgorithm, calls: int) -> None:
+    """``calls`` calls of ``train()``, one gradient step each on the model's batch size."""
+    for _ in range(calls):
+        model.train(1, model.batch_size)  # type: ignore[attr-defined]
+
+
 def split_rows(models: dict[str, BaseAlgorithm], steps: int, cuda: bool) -> list[str]:
     """Per env step: ``learn()``, ``train()`` alone, the rest, the compiled step's replay alone, and host reads."""
     rows = []
     for name, model in models.items():
         with HostReads() as reads:
-            learn = _timed(lambda model=model: model.learn(steps, reset_num_timesteps=False), cuda)
-        size = model.batch_size  # type: ignore[attr-defined]
-        train = _timed(lambda model=model, size=size: [model.train(1, size) for _ in range(steps)], cuda)  # type: ignore[attr-defined]
+            learn = _timed(partial(model.learn, steps, reset_num_timesteps=False), cuda)
+        train = _timed(partial(_train_calls, model, steps), cuda)
         cells = [
             f"learn() {1e3 * learn / steps:.2f} ms",
             f"train() alone {1e3 * train / steps:.2f} ms",
