@@ -181,7 +181,7 @@ def steps_before(specs: Sequence[RunSpec], folders: Sequence[Path]) -> list[int]
             done.append(spec.n_timesteps)
         else:
             (folder / PROGRESS_FILE).unlink(missing_ok=True)
-            done.append((checkpoint_step(folder) or 0) if has_checkpoint(folder) else 0)
+            done.append(checkpoint_step(folder) or 0)
     return done
 
 

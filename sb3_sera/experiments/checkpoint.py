@@ -235,7 +235,7 @@ def checkpoint_stamp(folder: Path) -> str | None:
     source = checkpoint_dir(folder)
     if source is None:
         return None
-    step = checkpoint_step(folder)
+    step = _recorded_step(source)
     written = datetime.fromtimestamp((source / "state.pkl").stat().st_mtime, timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     return f"{'an unrecorded step' if step is None else f'step {step:,}'} of {written}"
 
@@ -243,8 +243,13 @@ def checkpoint_stamp(folder: Path) -> str | None:
 def checkpoint_step(folder: Path) -> int | None:
     """The step of ``folder``'s whole checkpoint (None: none, or one written before its step was recorded)."""
     source = checkpoint_dir(folder)
+    return None if source is None else _recorded_step(source)
+
+
+def _recorded_step(source: Path) -> int | None:
+    """The step a checkpoint folder records (None: none recorded, or not readable)."""
     try:
-        return None if source is None else int((source / STEP_FILE).read_text())
+        return int((source / STEP_FILE).read_text())
     except (OSError, ValueError):
         return None
 

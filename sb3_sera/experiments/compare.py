@@ -172,23 +172,20 @@ def reading(results: Sequence[RunResult], algos: Sequence[str]) -> str:
     if learned:
         lines.append(f"  Learning (mean evaluation return, first -> final): {'; '.join(learned)}.")
     first, *others = algos
-    sizes = [len(runs) for runs in by_algo.values()]
     needed = runs_to_decide()
     budget = max((r.n_timesteps for r in results), default=0)
     elsewhere = "the ledger compares at the paper's budgets, 5 to 30 runs an arm: docs/results/index.md"
     for other in others:
         x = [r.final_return for r in by_algo[first]]
         y = [r.final_return for r in by_algo[other]]
-        if min(len(x), len(y)) < 2 or stats.decide(x, y, ALPHA).p is None:
+        decision = stats.decide(x, y, ALPHA) if min(len(x), len(y)) >= 2 else None
+        if decision is None or decision.p is None:
             lines.append(
-                f"  {min(sizes)} run(s) a side cannot tell {first} from {other} at p < {ALPHA} whatever they score: "
-                f"these runs show that each trains, not which is better. A test that can decide needs {needed} runs a "
-                f"side or more (--seeds {' '.join(map(str, range(needed)))}); {elsewhere}."
+                f"  {min(len(x), len(y))} run(s) a side cannot tell {first} from {other} at p < {ALPHA} whatever they "
+                f"score: these runs show that each trains, not which is better. A test that can decide needs {needed} "
+                f"runs a side or more (--seeds {' '.join(map(str, range(needed)))}); {elsewhere}."
             )
-            continue
-        decision = stats.decide(x, y, ALPHA)
-        assert decision.p is not None
-        if decision.p < ALPHA:
+        elif decision.p < ALPHA:
             lines.append(
                 f"  {first} {'ahead of' if decision.difference > 0 else 'behind'} {other} on this task at {budget:,} steps "
                 f"(p {decision.p:.3g}): one task at one budget, which says little of longer runs or other tasks; "

@@ -45,6 +45,14 @@ def bootstrap_masks(n_transitions: int, n_members: int, bootstrap_prob: float) -
     return masks
 
 
+def mask_settings(n_members: int, bootstrap_prob: float) -> tuple[int, float]:
+    """
+    The masks' settings checked (``ValueError`` naming the one out of range): ``n_members`` an integer >= 1,
+    ``bootstrap_prob`` in ``(0, 1]``.
+    """
+    return check_int("n_members", n_members, 1), check_range("bootstrap_prob", bootstrap_prob, 0.0, 1.0, low_inclusive=False)
+
+
 class SUNRISEReplayBuffer(ReplayBuffer):
     """
     SB3's ``ReplayBuffer`` that also stores, for each transition, which of the ``n_members`` members train on it.
@@ -87,8 +95,7 @@ class SUNRISEReplayBuffer(ReplayBuffer):
             optimize_memory_usage=optimize_memory_usage,
             handle_timeout_termination=handle_timeout_termination,
         )
-        self.n_members = check_int("n_members", n_members, 1)
-        self.bootstrap_prob = check_range("bootstrap_prob", bootstrap_prob, 0.0, 1.0, low_inclusive=False)
+        self.n_members, self.bootstrap_prob = mask_settings(n_members, bootstrap_prob)
         self.masks = np.zeros((self.buffer_size, self.n_envs, self.n_members), dtype=np.float32)
 
     def add(
@@ -157,8 +164,7 @@ class SUNRISEDeviceReplayBuffer(DeviceReplayBuffer):
         super().__init__(
             buffer_size, observation_space, action_space, device, n_envs, optimize_memory_usage, handle_timeout_termination
         )
-        self.n_members = check_int("n_members", n_members, 1)
-        self.bootstrap_prob = check_range("bootstrap_prob", bootstrap_prob, 0.0, 1.0, low_inclusive=False)
+        self.n_members, self.bootstrap_prob = mask_settings(n_members, bootstrap_prob)
         self.masks = self._zeros((self.n_members,), th.float32)
 
     def add(

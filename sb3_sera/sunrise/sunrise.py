@@ -37,7 +37,12 @@ from sb3_sera.common.hyperparameters import (
 from sb3_sera.common.naming import NamedRuns
 from sb3_sera.common.off_policy import record_means, start_train, target_update_due
 from sb3_sera.common.tuning import TuningSpace
-from sb3_sera.sunrise.buffers import SUNRISEDeviceReplayBuffer, SUNRISEReplayBuffer, SUNRISEReplayBufferSamples
+from sb3_sera.sunrise.buffers import (
+    SUNRISEDeviceReplayBuffer,
+    SUNRISEReplayBuffer,
+    SUNRISEReplayBufferSamples,
+    mask_settings,
+)
 from sb3_sera.sunrise.ensemble import backup_weight, ensemble_std, masked_mean, weighted_bellman_loss
 from sb3_sera.sunrise.policies import (
     DEFAULT_N_MEMBERS,
@@ -189,8 +194,7 @@ class SUNRISE(NamedRuns, Capabilities, CompiledUpdate, OffPolicyAlgorithm):
                 f"replay_buffer_class={replay_buffer_class.__name__} is invalid: SUNRISE needs SUNRISEReplayBuffer or "
                 "SUNRISEDeviceReplayBuffer (or a subclass), which store each transition's bootstrap masks, or None"
             )
-        self.n_members = check_int("n_members", n_members, 1)
-        self.bootstrap_prob = check_range("bootstrap_prob", bootstrap_prob, 0.0, 1.0, low_inclusive=False)
+        self.n_members, self.bootstrap_prob = mask_settings(n_members, bootstrap_prob)
         self.backup_temperature = check_range("backup_temperature", backup_temperature, 0.0, None)
         self.ucb_lambda = check_range("ucb_lambda", ucb_lambda, 0.0, None)
         self._take_compile_update(compile_update)
@@ -230,8 +234,6 @@ class SUNRISE(NamedRuns, Capabilities, CompiledUpdate, OffPolicyAlgorithm):
             "bootstrap_prob": self.bootstrap_prob,
         }
         self.policy_kwargs = {**self.policy_kwargs, "n_members": self.n_members, "ucb_lambda": self.ucb_lambda}
-        if self.replay_buffer_class is None and not (self.compile_update == "reduce-overhead" and self.device.type == "cuda"):
-            self.replay_buffer_class = SUNRISEReplayBuffer
         super()._setup_model()
         self.actor = self.policy.actor
         self.critic = self.policy.critic
@@ -411,6 +413,9 @@ class SUNRISE(NamedRuns, Capabilities, CompiledUpdate, OffPolicyAlgorithm):
 
     def _device_buffer_class(self) -> type[DeviceReplayBuffer]:
         return SUNRISEDeviceReplayBuffer
+
+    def _host_buffer_class(self) -> type[ReplayBuffer]:
+        return SUNRISEReplayBuffer
 
     def _logged_names(self) -> list[str]:
         return list(LOGGED[: 6 if self.ent_coef_optimizer is not None else 5])

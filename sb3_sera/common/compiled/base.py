@@ -13,6 +13,7 @@ from typing import Any, ClassVar, NamedTuple, TypeVar
 
 import numpy as np
 import torch as th
+from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from torch.utils import _pytree
@@ -93,9 +94,10 @@ class CompiledUpdate(OffPolicyAlgorithm):
     _pending_healthy: th.Tensor | None
 
     def _setup_model(self) -> None:
-        # CUDA graphs' batches drawn on the device, unless a buffer class is given
-        if self.replay_buffer_class is None and self.compile_update == "reduce-overhead" and self.device.type == "cuda":
-            self.replay_buffer_class = self._device_buffer_class()
+        if self.replay_buffer_class is None:
+            # CUDA graphs' batches drawn on the device; elsewhere the algorithm's own buffer (None: SB3's choice)
+            on_device = self.compile_update == "reduce-overhead" and self.device.type == "cuda"
+            self.replay_buffer_class = self._device_buffer_class() if on_device else self._host_buffer_class()
         super()._setup_model()
         if isinstance(self.replay_buffer, DeviceReplayBuffer) and self._vec_normalize_env is not None:
             raise ValueError(
@@ -107,6 +109,10 @@ class CompiledUpdate(OffPolicyAlgorithm):
     def _device_buffer_class(self) -> type[DeviceReplayBuffer]:
         """The replay buffer on the device that ``"reduce-overhead"`` on CUDA uses by default (SB3's, on the device)."""
         return device_buffer_class(self.observation_space)
+
+    def _host_buffer_class(self) -> type[ReplayBuffer] | None:
+        """The replay buffer used by default elsewhere: None, SB3's (``ReplayBuffer`` or ``DictReplayBuffer``)."""
+        return None
 
     def _take_compile_update(self, mode: CompileMode) -> None:
         """Set ``compile_update`` (at construction), ``ValueError`` naming the modes for anything else."""
