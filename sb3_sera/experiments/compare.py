@@ -193,8 +193,9 @@ def reading(results: Sequence[RunResult], algos: Sequence[str]) -> str:
             )
         else:
             lines.append(
-                f"  No difference shown between {first} and {other}: the interval allows anything from "
-                f"{decision.low:+.1f} to {decision.high:+.1f}, and more runs (--seeds) narrow it; {elsewhere}."
+                f"  These runs do not separate {first} from {other} (not a finding of no difference): the interval "
+                f"allows anything from {decision.low:+.1f} to {decision.high:+.1f}, and more runs (--seeds) narrow it; "
+                f"{elsewhere}."
             )
     return "\n".join(lines)
 
