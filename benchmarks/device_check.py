@@ -18,16 +18,18 @@ process, a table of
   ``sbx`` imports, on ``--env``; SERASAC eager and ``"reduce-overhead"`` and MASAC eager and ``"reduce-overhead"`` on
   ``--ma-env`` (the CTDE policy, the agents' actors stacked);
 - ``split``: per env step of SB3 SAC and of SERASAC ``"reduce-overhead"`` (``compile_update=True`` on a CPU), after
-  the speed section: ``learn()``, ``train()`` alone (one gradient step a call), the rest (acting, env step, buffer,
-  callbacks, logging), the compiled step's replay alone (``--split-steps`` replays back to back, timed with CUDA
-  events), an action (``_sample_action``) eager and through the compiled actor, and the host reads per env step
-  (:class:`~sb3_sera.common.host_reads.HostReads`);
+  the speed section and an untimed ``learn()`` of as many steps: ``learn()``, ``train()`` alone (one gradient step a
+  call), the rest (acting, env step, buffer, callbacks, logging), the compiled step's replay alone (``--split-steps``
+  replays back to back, timed with CUDA events), an action (``_sample_action``) eager and through the compiled
+  actor, and the host reads per env step (:class:`~sb3_sera.common.host_reads.HostReads`);
 - ``many``: 1, 4 and 8 processes (``--processes``) of SERASAC ``"reduce-overhead"`` learning on ``--env`` on the one
   device at once: each one's ``learn()`` rate and their total, against one process's.
 
 Each rate is the median of ``--blocks`` blocks of ``--block-steps`` steps, with its ratio to SB3 SAC's rate (the
-single-agent rows) or to eager SERASAC's on the multi-agent task (the multi-agent rows). The defaults fit the lent
-machine's budget (about 6 minutes on an H200, the install included).
+single-agent rows) or to eager SERASAC's on the multi-agent task (the multi-agent rows). Every section takes about 11
+minutes on an H200 (2026-11-27: the sections up to ``speed`` 8.3 minutes, builds and install included; ``split`` and
+``many`` 2.2 more on the machine still warm), more than one call of the lent machine may run (10 minutes): run it as
+two calls, ``--sections cudagraphs equality order gradients speed`` and ``--sections split many``.
 
     bash benchmarks/device_check.sh                       # the wheels in .whl/, see docs/guide/developer.md
     python benchmarks/device_check.py --sections speed --blocks 5
@@ -174,6 +176,9 @@ def split_rows(models: dict[str, BaseAlgorithm], steps: int, cuda: bool) -> list
     """Per env step: ``learn()``, ``train()`` alone, the rest, the compiled step's replay alone, and host reads."""
     rows = []
     for name, model in models.items():
+        # Untimed first: on the H200 the first learn() after the build took 48.9 ms an env step where the speed
+        # section's rate gives 4.2 ms (some one-off work: a recompilation or a CUDA graph's recording)
+        model.learn(steps, reset_num_timesteps=False)
         with HostReads() as reads:
             learn = _timed(partial(model.learn, steps, reset_num_timesteps=False), cuda)
         train = _timed(partial(_train_calls, model, steps), cuda)

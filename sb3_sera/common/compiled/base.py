@@ -64,8 +64,9 @@ class CompiledUpdate(OffPolicyAlgorithm):
     first such step. ``read_every_train = True`` reads after every ``train()`` call instead, as does a ``train()``
     called outside ``learn()``.
 
-    The action: on a CUDA device ``learn()`` acts through the policy's ``_predict`` compiled in the same mode (the
-    action the one value read back); ``compile_action`` chooses elsewhere.
+    The action: with ``compile_action = True``, ``learn()`` acts through the policy's ``_predict`` compiled in the same
+    mode (the action the one value read back); by default it acts eagerly, which measured faster on a GPU
+    (``docs/speed.md``).
 
     An algorithm supplies ``_gradient_step_graph`` and ``_optimizer_plans``, calls ``_setup_compiled_update`` at the
     end of its ``_setup_model`` and ``_train_compiled`` from its ``train`` where ``_compiled_step`` is set; the rest
@@ -80,9 +81,9 @@ class CompiledUpdate(OffPolicyAlgorithm):
     _adam_plans: list[AdamPlan]
     #: Read the steps' values back after every ``train()`` call, not once per log interval
     read_every_train: bool = False
-    #: Act in ``learn()`` through the compiled actor (with ``"reduce-overhead"``, a CUDA graph): None, the default,
-    #: where the model is on a CUDA device (on a CPU it saves a few percent of an action, not of a step), or True/False
-    compile_action: bool | None = None
+    #: Act in ``learn()`` through the compiled actor (with ``"reduce-overhead"``, a CUDA graph); off by default: eager
+    #: acting measured faster on a GPU and within a few percent on a CPU (``docs/speed.md``)
+    compile_action: bool = False
     _compiled_action: Callable[..., th.Tensor] | None
     #: Whether ``learn()`` is running with its reads deferred to the log interval
     _deferring_reads: bool = False
@@ -166,9 +167,7 @@ class CompiledUpdate(OffPolicyAlgorithm):
 
     def _acting_compiled(self) -> bool:
         """Whether ``learn()`` acts through the compiled actor (``compile_action``)."""
-        if self._compiled_action is None:
-            return False
-        return self.device.type == "cuda" if self.compile_action is None else self.compile_action
+        return self._compiled_action is not None and self.compile_action
 
     def _compiled_predict(self, observation: Any, deterministic: bool = False) -> th.Tensor:
         """The policy's ``_predict`` through the compiled actor (``_acting_compiled``)."""
