@@ -1,5 +1,6 @@
 """What several test files share: the repository's root, the small tasks and settings models are trained with,
-comparisons of a model's torch state, and the command line run as a terminal runs it (Ctrl-C included)."""
+comparisons of a model's torch state and of two runs' ends, and the command line run as a terminal runs it (Ctrl-C
+included)."""
 
 import os
 import signal
@@ -11,8 +12,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pandas as pd
 import pytest
 import torch as th
+
+from sb3_sera import SERASAC
 
 #: The repository's top folder (README, docs, notebooks, benchmarks, results, hyperparams)
 ROOT = Path(__file__).resolve().parents[1]
@@ -243,3 +247,20 @@ eval_freq: 100
 eval_episodes: 1
 hyperparams: {{learning_starts: 50, batch_size: 32}}
 """
+
+
+def assert_same_end(straight: Path, resumed: Path, model_file: str) -> int:
+    """
+    The resumed run ended as the uninterrupted one: the same final parameters, monitor rows (reward and length) and
+    evaluations; the number of monitor rows.
+    """
+    first = SERASAC.load(straight / model_file, device="cpu").policy.state_dict()
+    second = SERASAC.load(resumed / model_file, device="cpu").policy.state_dict()
+    assert first.keys() == second.keys()
+    assert all(th.equal(first[key], second[key]) for key in first), "the parameters differ"
+    monitors = [pd.read_csv(folder / "0.monitor.csv", skiprows=1)[["r", "l"]] for folder in (straight, resumed)]
+    assert monitors[0].equals(monitors[1])
+    for name in ("evaluations.npz", "initial_state_bias.npz"):
+        with np.load(straight / name) as x, np.load(resumed / name) as y:
+            assert x.files == y.files and all(np.array_equal(x[key], y[key]) for key in x.files), name
+    return len(monitors[0])

@@ -45,11 +45,62 @@ class Interrupted(RuntimeError):
     """Runs stopped by Ctrl-C (SIGINT) or SIGTERM: the finished ones are kept, the unfinished ones named."""
 
 
-def _worker_init(parent: int) -> None:
+#: How many times Ray starts a run again after a system failure (its worker or its node lost); a run that fails for
+#: its own reasons (a bad setting, a non-finite loss) is never retried
+RAY_RETRIES = 3
+
+
+def check_gpu_share(gpus_per_run: float | None, devices: Sequence[str]) -> None:
+    """
+    ``ValueError`` unless ``gpus_per_run`` is a share Ray takes (a fraction of one GPU, or a whole number of GPUs) and
+    the runs' devices leave the GPU to it (``auto`` or ``cuda``: the run uses the GPU it is given).
+    """
+    if gpus_per_run is None:
+        return
+    if not gpus_per_run > 0 or (gpus_per_run > 1 and not float(gpus_per_run).is_integer()):
+        raise ValueError(
+            f"--gpus-per-run {gpus_per_run} is not a GPU share: expected a fraction of one GPU (0.125 places eight runs "
+            "on a card) or a whole number of GPUs"
+        )
+    fixed = sorted({device for device in devices if device not in ("auto", "cuda")})
+    if fixed:
+        raise ValueError(
+            f"--gpus-per-run gives each run its GPU, but the runs' device is {', '.join(fixed)}: use --device auto or cuda"
+        )
+
+
+def gpu_slots(gpus_per_run: float, visible: Sequence[str]) -> list[str]:
+    """
+    The local workers' GPUs when each run takes ``gpus_per_run`` of the GPUs ``visible`` (their CUDA ids): one
+    ``CUDA_VISIBLE_DEVICES`` value a worker, ``1 / gpus_per_run`` workers a GPU for a fraction, ``gpus_per_run`` GPUs a
+    worker for a whole number.
+    """
+    if gpus_per_run <= 1:
+        per_gpu = int(1 / gpus_per_run + 1e-9)
+        return [gpu for gpu in visible for _ in range(per_gpu)]
+    width = int(gpus_per_run)
+    return [",".join(visible[start : start + width]) for start in range(0, len(visible) - width + 1, width)]
+
+
+def _visible_gpus() -> list[str]:
+    """This machine's GPUs as CUDA ids, within ``CUDA_VISIBLE_DEVICES`` where it is set."""
+    import torch as th
+
+    listed = os.environ.get("CUDA_VISIBLE_DEVICES")
+    ids = [gpu.strip() for gpu in listed.split(",") if gpu.strip()] if listed is not None else None
+    count = th.cuda.device_count() if th.cuda.is_available() else 0
+    return (ids or [str(index) for index in range(count)])[:count]
+
+
+def _worker_init(parent: int, slots: Any = None) -> None:
     """
     A run worker leaves Ctrl-C to its parent (which stops every worker once) and ends when its parent does, even
-    when the parent was killed outright (Linux: the kernel signals it; elsewhere a thread watches the parent).
+    when the parent was killed outright (Linux: the kernel signals it; elsewhere a thread watches the parent). With
+    ``slots`` (a queue of ``CUDA_VISIBLE_DEVICES`` values, :func:`gpu_slots`) it takes one for its life, before torch
+    starts CUDA.
     """
+    if slots is not None:
+        os.environ["CUDA_VISIBLE_DEVICES"] = slots.get_nowait()
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     if sys.platform.startswith("linux"):
         import ctypes
@@ -76,11 +127,14 @@ def execute(
     ray_address: str | None = None,
     progress_bar: bool = True,
     accept_older: str | None = None,
+    gpus_per_run: float | None = None,
 ) -> list[RunResult]:
     """
     Run every spec in its folder (:func:`.assign_folders`): on a local process pool of ``n_jobs`` workers (default:
     one per core), or as Ray tasks of one CPU each on the cluster at ``ray_address`` (``"auto"``: the one
-    ``ray start`` made on this machine). Finished runs are read back, not run again. A failed run does not stop
+    ``ray start`` made on this machine). A Ray task whose worker or node is lost is started again elsewhere
+    (:data:`RAY_RETRIES` times at most) and resumes from its run's last checkpoint in the shared output folder; one
+    that fails for its own reasons is not. Finished runs are read back, not run again. A failed run does not stop
     the others: once all have ended, each failed run's traceback is printed to stderr and ``RuntimeError`` names
     the failed ones with their errors. A failed run that had not evaluated
     yet leaves no folder behind; one that had keeps its logs, without the ``result.json`` of a finished run.
@@ -89,14 +143,26 @@ def execute(
 
     :param accept_older: why a finished run made by other code is read back rather than trained again (recorded in
         its folder; None: never, see :func:`.assign_folders`)
+    :param gpus_per_run: each run's share of a GPU (0.125: eight runs a card) or whole GPUs, its device the GPU it
+        is given (``--gpus-per-run``; locally, ``n_jobs`` defaults to the runs the GPUs hold); None: no GPU is shared
     :return: the results, in the order of ``specs``
     """
+    check_gpu_share(gpus_per_run, [spec.device for spec in specs])
+    slots = None
+    if gpus_per_run is not None and ray_address is None:
+        slots = gpu_slots(gpus_per_run, _visible_gpus())
+        if not slots or (n_jobs or 0) > len(slots):
+            raise ValueError(
+                f"--gpus-per-run {gpus_per_run} on this machine's {len(_visible_gpus())} GPU(s) holds {len(slots)} "
+                f"run(s) at a time" + (f", fewer than --n-jobs {n_jobs}" if slots else "")
+            )
+        n_jobs = n_jobs or len(slots)
     with output_lock(out_dir):
         folders = assign_folders(specs, out_dir, accept_older=accept_older)
         if ray_address is not None:
-            outcomes = _execute_on_ray(specs, folders=folders, address=ray_address, progress_bar=progress_bar)
+            outcomes = _execute_on_ray(specs, folders, ray_address, progress_bar, gpus_per_run or 0)
         else:
-            outcomes = _execute_locally(specs, folders=folders, n_jobs=n_jobs, progress_bar=progress_bar)
+            outcomes = _execute_locally(specs, folders=folders, n_jobs=n_jobs, progress_bar=progress_bar, slots=slots)
     failed = []
     for spec, folder, outcome in zip(specs, folders, outcomes, strict=True):
         if isinstance(outcome, BaseException):
@@ -186,13 +252,21 @@ def steps_before(specs: Sequence[RunSpec], folders: Sequence[Path]) -> list[int]
 
 
 def _execute_locally(
-    specs: Sequence[RunSpec], folders: Sequence[Path], n_jobs: int | None, progress_bar: bool
+    specs: Sequence[RunSpec],
+    folders: Sequence[Path],
+    n_jobs: int | None,
+    progress_bar: bool,
+    slots: Sequence[str] | None = None,
 ) -> list[RunResult | BaseException]:
     n_jobs = min(n_jobs or os.cpu_count() or 1, len(specs))
     outcomes: dict[int, RunResult | BaseException] = {}
-    pool = ProcessPoolExecutor(
-        max_workers=n_jobs, mp_context=get_context("spawn"), initializer=_worker_init, initargs=(os.getpid(),)
-    )
+    context = get_context("spawn")
+    queue = None
+    if slots is not None:
+        queue = context.Queue()
+        for slot in slots:
+            queue.put(slot)
+    pool = ProcessPoolExecutor(max_workers=n_jobs, mp_context=context, initializer=_worker_init, initargs=(os.getpid(), queue))
     # SIGTERM (a scheduler, kill) stops the runs as Ctrl-C does (signals are the main thread's to handle)
     main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler) if main_thread else None
@@ -244,14 +318,17 @@ def _execute_locally(
 
 
 def _execute_on_ray(
-    specs: Sequence[RunSpec], folders: Sequence[Path], address: str, progress_bar: bool
+    specs: Sequence[RunSpec], folders: Sequence[Path], address: str, progress_bar: bool, gpus_per_run: float
 ) -> list[RunResult | BaseException]:
     try:
         import ray
     except ImportError as error:
         raise ImportError("--ray-address needs Ray: pip install 'sb3-sera[distributed]'") from error
     ray.init(address=address, ignore_reinit_error=True, log_to_driver=False)
-    remote_train: Any = ray.remote(num_cpus=1)(train_one)
+    # Ray gives a task with GPUs its own (CUDA_VISIBLE_DEVICES), where the run's device (auto or cuda) finds them
+    remote_train: Any = ray.remote(num_cpus=1, num_gpus=gpus_per_run, max_retries=RAY_RETRIES, retry_exceptions=False)(
+        train_one
+    )
     # Workers may start elsewhere: give them absolute folders
     pending = {
         remote_train.remote(spec, str(folder.resolve())): index

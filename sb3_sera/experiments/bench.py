@@ -169,6 +169,7 @@ def run_grid(
     checkpoint_freq: int | None = None,
     keep_checkpoints: bool = False,
     accept_older: str | None = None,
+    gpus_per_run: float | None = None,
 ) -> list[RunResult]:
     """
     Run a grid file's runs (see :func:`load_grid`).
@@ -177,10 +178,13 @@ def run_grid(
         interrupted grid resumes each unfinished run from its last one (:mod:`~sb3_sera.experiments.checkpoint`)
     :param keep_checkpoints: keep a finished run's last checkpoint (removed by default)
     :param accept_older: why finished runs made by other code are read back (see :func:`.execute`)
+    :param gpus_per_run: each run's share of a GPU, or whole GPUs (see :func:`.execute`; None: none shared)
     :return: the results, in the grid's order
     """
     specs = load_grid(path, num_threads, device)
     for spec in specs:
         spec.checkpoint_freq = checkpoint_every(checkpoint_freq, spec.n_timesteps)
         spec.keep_checkpoints = keep_checkpoints
-    return execute(specs, out_dir, n_jobs=n_jobs, ray_address=ray_address, accept_older=accept_older)
+    return execute(
+        specs, out_dir, n_jobs=n_jobs, ray_address=ray_address, accept_older=accept_older, gpus_per_run=gpus_per_run
+    )

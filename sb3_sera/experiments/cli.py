@@ -62,8 +62,10 @@ def _compare(args: argparse.Namespace) -> None:
 
 
 def _bench(args: argparse.Namespace) -> None:
-    n_jobs = args.n_jobs or os.cpu_count() or 1
-    threads = args.num_threads or (1 if args.ray_address else default_threads(n_jobs))
+    # Runs that share GPUs: as many at a time as the GPUs hold (execute counts them), each with one torch thread
+    shared = args.gpus_per_run is not None
+    n_jobs = args.n_jobs or (None if shared else os.cpu_count() or 1)
+    threads = args.num_threads or (1 if args.ray_address or shared else default_threads(n_jobs or 1))
     results = bench.run_grid(
         args.grid,
         args.out,
@@ -74,6 +76,7 @@ def _bench(args: argparse.Namespace) -> None:
         checkpoint_freq=args.checkpoint_freq,
         keep_checkpoints=args.keep_checkpoints,
         accept_older=args.accept_older,
+        gpus_per_run=args.gpus_per_run,
     )
     _print_report(results, out=args.out, name=Path(args.grid).stem, reps=args.reps)
 
@@ -209,6 +212,14 @@ def build_parser() -> argparse.ArgumentParser:
     grid.add_argument("--n-jobs", type=int, default=None, help="local runs at a time (default: one per core)")
     grid.add_argument(
         "--ray-address", default=None, help="run on this Ray cluster ('auto': the one started here; default: local processes)"
+    )
+    grid.add_argument(
+        "--gpus-per-run",
+        type=float,
+        default=None,
+        metavar="SHARE",
+        help="each run's share of a GPU, on Ray or here (0.125: eight runs a card; 2: two GPUs a run); the run uses the "
+        "GPU it is given, and here --n-jobs defaults to the runs the GPUs hold (default: no GPU shared)",
     )
     _add_run_flags(grid)
     grid.set_defaults(func=_bench)

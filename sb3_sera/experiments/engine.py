@@ -6,6 +6,9 @@ progress file, and its records written, ``result.json`` last to mark the run fin
 
 import copy
 import json
+import os
+import socket
+import sys
 import time
 from collections.abc import Sequence
 from datetime import datetime, timezone
@@ -129,12 +132,38 @@ class ProgressFile(BaseCallback):
 
 #: Where a run under way keeps its resumes until ``result.json`` takes them
 RESUMES_FILE = ".resumes.json"
+#: Where a run under way keeps where each of its starts ran (:func:`placement`) until ``result.json`` takes them
+ATTEMPTS_FILE = ".attempts.json"
 
 
-def _resumes(folder: Path) -> list[dict[str, Any]]:
-    """The resumes a run under way has had (:data:`RESUMES_FILE`), oldest first."""
-    path = folder / RESUMES_FILE
+def _pending(folder: Path, name: str) -> list[dict[str, Any]]:
+    """The records a run under way keeps in ``name`` (:data:`RESUMES_FILE`, :data:`ATTEMPTS_FILE`), oldest first."""
+    path = folder / name
     return list(json.loads(path.read_text())) if path.exists() else []
+
+
+def _record(folder: Path, name: str, entry: dict[str, Any]) -> None:
+    """``entry`` added to the records a run under way keeps in ``name``."""
+    write_atomic(folder / name, json.dumps([*_pending(folder, name), entry]))
+
+
+def _now() -> str:
+    return datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+def placement() -> dict[str, Any]:
+    """
+    Where this process makes a run: the host, the GPUs it may use (``CUDA_VISIBLE_DEVICES``, where set) and, in a
+    Ray task, the node and the resources Ray gave it (a GPU's share with ``--gpus-per-run``).
+    """
+    where: dict[str, Any] = {"host": socket.gethostname()}
+    if "CUDA_VISIBLE_DEVICES" in os.environ:
+        where["cuda_visible_devices"] = os.environ["CUDA_VISIBLE_DEVICES"]
+    ray = sys.modules.get("ray")  # imported in a Ray worker; never imported here for a local run
+    if ray is not None and ray.is_initialized() and ray.get_runtime_context().get_task_id() is not None:
+        context = ray.get_runtime_context()
+        where.update(ray_node=context.get_node_id(), ray_resources=context.get_assigned_resources())
+    return where
 
 
 def steps_done(folder: Path, budget: int) -> int:
@@ -161,8 +190,10 @@ def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
     # its first process built them
     import rl_zoo3.gym_patches  # noqa: F401
 
-    # An interrupted run starts again here, maybe under newer code: its record names the code that runs now, and its
-    # resumes (below) the code before
+    # An interrupted run starts again here, maybe under newer code (or on another machine, a Ray task retried after
+    # its node was lost): its record names the code that runs now, its resumes (below) the code before, and its
+    # attempts where each start ran
+    _record(folder, ATTEMPTS_FILE, {"at": _now(), **placement()})
     records = records_dir(folder, spec.env_id) / "args.yml"
     code_before = (yaml.safe_load(records.read_text()) or {}).get("git_commit") if records.exists() else None
     args = plain(spec.args())
@@ -212,11 +243,11 @@ def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
         else:
             resume = {
                 "from_step": int(model.num_timesteps),
-                "at": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+                "at": _now(),
                 "code_before": code_before,
                 "code_after": args.get("git_commit"),
             }
-            write_atomic(folder / RESUMES_FILE, json.dumps([*_resumes(folder), resume]))
+            _record(folder, RESUMES_FILE, resume)
             notice(f"{folder}: resumed from step {model.num_timesteps:,}")
     if model is None:
         model = make_model(spec, make_env(str(folder)), tensorboard_log=str(folder))
@@ -241,10 +272,12 @@ def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
         "wall_time_s": wall_time,
         "torch_threads": th.get_num_threads(),
         "device": str(model.device),
-        "resumes": _resumes(folder),
+        "resumes": _pending(folder, RESUMES_FILE),
+        "attempts": _pending(folder, ATTEMPTS_FILE),
     }
     write_atomic(folder / RESULT_FILE, json.dumps(result))
-    (folder / RESUMES_FILE).unlink(missing_ok=True)
+    for name in (RESUMES_FILE, ATTEMPTS_FILE):
+        (folder / name).unlink(missing_ok=True)
     if not spec.keep_checkpoints:
         remove_checkpoints(folder)
     return load_result(folder)

@@ -1,4 +1,4 @@
-"""`sb3-sera bench`: grid checks before any run, local runs that resume, and a local Ray instance."""
+"""`sb3-sera bench`: grid checks before any run and local runs that resume (on Ray: ``test_cluster.py``)."""
 
 import json
 import shutil
@@ -133,19 +133,6 @@ def test_grid_runs_and_resumes(tmp_path, capsys):
     (accepted,) = json.loads((kept.parent / "accepted.json").read_text())
     assert accepted["reason"] == "a docstring edit" and accepted["code_then"]["run_code_digest"].startswith("0")
     assert not (out / "serasac" / "Pendulum-v1_2").exists()
-
-
-def test_grid_on_a_local_ray_instance(tmp_path):
-    ray = pytest.importorskip("ray", reason="Ray is the distributed extra: pip install -e '.[distributed]'")
-
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
-    try:
-        address = ray.get_runtime_context().gcs_address
-        results = bench.run_grid(write(tmp_path, GRID), str(tmp_path / "out"), ray_address=address)
-    finally:
-        ray.shutdown()
-    assert sorted(result.variant for result in results) == ["ensemble_mean", "serasac"]
-    assert (tmp_path / "out" / "serasac" / "Pendulum-v1_1" / "evaluations.npz").exists()
 
 
 def test_a_variant_on_a_task_of_the_other_kind_is_refused_before_any_run(tmp_path):

@@ -7,15 +7,11 @@ import subprocess
 import time
 from pathlib import Path
 
-import numpy as np
-import pandas as pd
 import pytest
-import torch as th
 
-from sb3_sera import SERASAC
 from sb3_sera.experiments.backends import STOPPED_LOG
 from sb3_sera.experiments.records import load_result
-from tests.helpers import CTDE_TASK, ctrl_c, killed_at_exit, start_command
+from tests.helpers import CTDE_TASK, assert_same_end, ctrl_c, killed_at_exit, start_command
 
 # A classic-control task, a MuJoCo task, a MaMuJoCo task and a PettingZoo MPE task, with episodes short enough for
 # several to end before and after the interruption
@@ -68,23 +64,6 @@ def interrupt_after_checkpoint(
         stderr = ctrl_c(process, timeout=60)
     assert process.returncode == returncode, stderr[-3000:]
     return stderr
-
-
-def assert_same_end(straight: Path, resumed: Path, model_file: str) -> int:
-    """
-    The resumed run ended as the uninterrupted one: the same final parameters, monitor rows (reward and length) and
-    evaluations; the number of monitor rows.
-    """
-    first = SERASAC.load(straight / model_file, device="cpu").policy.state_dict()
-    second = SERASAC.load(resumed / model_file, device="cpu").policy.state_dict()
-    assert first.keys() == second.keys()
-    assert all(th.equal(first[key], second[key]) for key in first), "the parameters differ"
-    monitors = [pd.read_csv(folder / "0.monitor.csv", skiprows=1)[["r", "l"]] for folder in (straight, resumed)]
-    assert monitors[0].equals(monitors[1])
-    for name in ("evaluations.npz", "initial_state_bias.npz"):
-        with np.load(straight / name) as x, np.load(resumed / name) as y:
-            assert x.files == y.files and all(np.array_equal(x[key], y[key]) for key in x.files), name
-    return len(monitors[0])
 
 
 def run_folder(out: Path) -> Path:
