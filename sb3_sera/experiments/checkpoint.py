@@ -40,6 +40,7 @@ from stable_baselines3.common.monitor import Monitor, ResultsWriter
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_sera.common.capabilities import as_the_model_sees
+from sb3_sera.experiments.defaults import CHECKPOINT_FREQ
 from sb3_sera.experiments.env_state import (
     StateNotCapturable,
     capture,
@@ -52,8 +53,6 @@ from sb3_sera.experiments.env_state import (
 
 #: A checkpoint's step, in plain text
 STEP_FILE = "step"
-#: Steps between checkpoints by default: a 50K-step run keeps at most 10K steps of work at risk
-CHECKPOINT_FREQ = 10_000
 #: Checkpoints a run shorter than three times ``CHECKPOINT_FREQ`` takes by default (a short run resumes too)
 SHORT_RUN_CHECKPOINTS = 3
 

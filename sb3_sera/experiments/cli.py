@@ -1,29 +1,33 @@
-"""The ``sb3-sera`` command line (also ``python -m sb3_sera``)."""
+"""
+The ``sb3-sera`` command line (also ``python -m sb3_sera``). Its parser imports nothing heavy: ``--help`` and an
+argument's error are answered before torch and Stable-Baselines3 are imported, which the chosen command then does.
+"""
 
 import argparse
+import ast
 import contextlib
+import importlib.util
 import os
 import re
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import yaml
+from sb3_sera.experiments import defaults
 
-from sb3_sera.common.arguments import UnknownKeywordError
-from sb3_sera.common.mujoco_log import route_mujoco_warnings
-from sb3_sera.experiments import bench, compare, intake, ledger, report, stats, zoo
-from sb3_sera.experiments.backends import Interrupted, default_threads
-from sb3_sera.experiments.checkpoint import CHECKPOINT_FREQ
-from sb3_sera.experiments.records import RunResult, env_name
+if TYPE_CHECKING:
+    from sb3_sera.experiments.records import RunResult
 
 
-def _print_report(results: list[RunResult], out: str, name: str, reps: int, summary: str = "") -> None:
+def _print_report(results: "list[RunResult]", out: str, name: str, reps: int, summary: str = "") -> None:
     """
     Report the runs just made in a new ``<out>/reports/<name>_<n>/``; print its tables (where there is no
     ``summary``) and where the report, its figures and the runs are, then ``summary`` (the comparison in short and
     what it means), last, where the eye lands.
     """
+    from sb3_sera.experiments import report
+
     folder = report.next_report_folder(Path(out) / "reports", name)
     path = report.write_report(results, folder, reps=reps, sources=[out], log=lambda line: print(line, file=sys.stderr))
     tables = "" if summary else f"\n{path.read_text()}"
@@ -38,6 +42,9 @@ def _figures(report_path: Path) -> str:
 
 
 def _compare(args: argparse.Namespace) -> None:
+    from sb3_sera.experiments import compare
+    from sb3_sera.experiments.records import env_name
+
     common, per_algo = compare.parse_params(args.hyperparams or [], args.algos)
     results = compare.run_comparison(
         algos=args.algos,
@@ -62,6 +69,9 @@ def _compare(args: argparse.Namespace) -> None:
 
 
 def _bench(args: argparse.Namespace) -> None:
+    from sb3_sera.experiments import bench
+    from sb3_sera.experiments.backends import default_threads
+
     # Runs that share GPUs: as many at a time as the GPUs hold (execute counts them), each with one torch thread
     shared = args.gpus_per_run is not None
     n_jobs = args.n_jobs or (None if shared else os.cpu_count() or 1)
@@ -82,6 +92,8 @@ def _bench(args: argparse.Namespace) -> None:
 
 
 def _report(args: argparse.Namespace) -> None:
+    from sb3_sera.experiments import report
+
     path = report.report_roots(
         args.roots,
         args.out,
@@ -95,6 +107,8 @@ def _report(args: argparse.Namespace) -> None:
 
 
 def _ledger_add(args: argparse.Namespace) -> None:
+    from sb3_sera.experiments import intake
+
     outcome = intake.add_runs(args.sources, args.ledger, unclaimed=args.unclaimed, below_budget=args.below_budget)
     for folder in outcome.added:
         enters = outcome.enters.get(folder) or []
@@ -104,12 +118,14 @@ def _ledger_add(args: argparse.Namespace) -> None:
     print(f"{len(outcome.added)} run(s) added to {args.ledger}, {len(outcome.refused)} refused")
     if outcome.added:
         print(
-            f"`sb3-sera ledger report` now rewrites {ledger.DOCS_DIR}/ (the report, its figures, the results page) and "
+            f"`sb3-sera ledger report` now rewrites {defaults.DOCS_DIR}/ (the report, its figures, the results page) and "
             "the README's results block from the ledger"
         )
 
 
 def _ledger_report(args: argparse.Namespace) -> None:
+    from sb3_sera.experiments import ledger
+
     path, readme = ledger.write_results(args.ledger, args.docs, args.readme, reps=args.reps)
     print(f"Report: {path}{_figures(path)}\nResults blocks rewritten in {path.parent / ledger.RESULTS_PAGE} and {readme}")
 
@@ -122,13 +138,13 @@ def _add_run_flags(parser: argparse.ArgumentParser) -> None:
         help="torch threads per run (default: the cores divided among the runs at a time, at least 1)",
     )
     parser.add_argument("--device", default="auto", help="torch device of every run: auto, cpu, cuda, cuda:1, ...")
-    parser.add_argument("--reps", type=int, default=stats.REPS, help="bootstrap resamples of the report's intervals")
+    parser.add_argument("--reps", type=int, default=defaults.REPS, help="bootstrap resamples of the report's intervals")
     parser.add_argument(
         "--checkpoint-freq",
         type=int,
         default=None,
         help="steps between a run's checkpoints, from which the same command resumes an interrupted run (0: none; "
-        f"default: {CHECKPOINT_FREQ:,}, or a third of the budget where that is less)",
+        f"default: {defaults.CHECKPOINT_FREQ:,}, or a third of the budget where that is less)",
     )
     parser.add_argument("--keep-checkpoints", action="store_true", help="keep a finished run's last checkpoint")
     parser.add_argument(
@@ -156,6 +172,13 @@ def _exit(code: int, message: str) -> None:
     sys.exit(code)
 
 
+def module_doc(name: str) -> str | None:
+    """The docstring of ``sb3_sera.experiments.<name>``, read from its source without importing it (or torch)."""
+    spec = importlib.util.find_spec(f"sb3_sera.experiments.{name}")
+    assert spec is not None and spec.origin is not None
+    return ast.get_docstring(ast.parse(Path(spec.origin).read_text(encoding="utf-8")))
+
+
 def plain_text(doc: str | None) -> str:
     """A module's docstring for the terminal: Sphinx roles and double backquotes as plain text."""
     text = re.sub(r":\w+:`~?(?:[\w.]*\.)?([\w]+)`", r"\1", doc or "")
@@ -171,13 +194,13 @@ def build_parser() -> argparse.ArgumentParser:
     comp = commands.add_parser(
         "compare",
         help="train algorithms on one task for several seeds with hyperparams/<algo>.yml, then report them",
-        description=plain_text(compare.__doc__),
+        description=plain_text(module_doc("compare")),
         formatter_class=HelpFormatter,
     )
-    comp.add_argument("--algos", nargs="+", default=list(compare.DEFAULT_ALGOS), help="algorithm names")
-    comp.add_argument("--env", default=compare.DEFAULT_ENV, help="Gymnasium id")
-    comp.add_argument("--seeds", nargs="+", type=int, default=list(compare.DEFAULT_SEEDS), help="seeds of every algorithm")
-    comp.add_argument("-n", "--n-timesteps", type=int, default=compare.DEFAULT_TIMESTEPS, help="environment steps of a run")
+    comp.add_argument("--algos", nargs="+", default=list(defaults.DEFAULT_ALGOS), help="algorithm names")
+    comp.add_argument("--env", default=defaults.DEFAULT_ENV, help="Gymnasium id")
+    comp.add_argument("--seeds", nargs="+", type=int, default=list(defaults.DEFAULT_SEEDS), help="seeds of every algorithm")
+    comp.add_argument("-n", "--n-timesteps", type=int, default=defaults.DEFAULT_TIMESTEPS, help="environment steps of a run")
     comp.add_argument("--eval-freq", type=int, default=1000, help="environment steps between evaluations")
     comp.add_argument("--eval-episodes", type=int, default=5, help="episodes of each evaluation")
     comp.add_argument("--n-jobs", type=int, default=None, help="runs at a time (default: one per core)")
@@ -204,7 +227,7 @@ def build_parser() -> argparse.ArgumentParser:
     grid = commands.add_parser(
         "bench",
         help="run a grid of variants x tasks x seeds from a YAML file, locally or on Ray; resumes where it stopped",
-        description=plain_text(bench.__doc__),
+        description=plain_text(module_doc("bench")),
         formatter_class=HelpFormatter,
     )
     grid.add_argument("grid", help="the grid's YAML file")
@@ -226,13 +249,13 @@ def build_parser() -> argparse.ArgumentParser:
     rep = commands.add_parser(
         "report",
         help="a Markdown report (IQM and bootstrap intervals, paper tables, figures) from rl-zoo3-style run folders",
-        description=plain_text(report.__doc__),
+        description=plain_text(module_doc("report")),
         formatter_class=HelpFormatter,
     )
     rep.add_argument("roots", nargs="+", help="folders holding <variant>/<env_name>_<id>/ run folders")
     rep.add_argument("--out", default="logs/report", help="folder for report.md and its figures")
     rep.add_argument("--overwrite", action="store_true", help="replace a report already in --out")
-    rep.add_argument("--reps", type=int, default=stats.REPS, help="bootstrap resamples of every interval")
+    rep.add_argument("--reps", type=int, default=defaults.REPS, help="bootstrap resamples of every interval")
     rep.add_argument(
         "--matrix-step", type=int, default=None, help="step of the correlation matrices (default: the last evaluation)"
     )
@@ -240,13 +263,13 @@ def build_parser() -> argparse.ArgumentParser:
     led = commands.add_parser(
         "ledger",
         help="the committed results ledger (results/): add finished runs, regenerate the README's results from it",
-        description=plain_text(ledger.__doc__),
+        description=plain_text(module_doc("ledger")),
         formatter_class=HelpFormatter,
     )
     led_commands = led.add_subparsers(dest="ledger_command", required=True)
     led_add = led_commands.add_parser("add", help="copy finished runs' records from bench/compare outputs into the ledger")
     led_add.add_argument("sources", nargs="+", help="folders holding <variant>/<env_name>_<id>/ run folders")
-    led_add.add_argument("--ledger", default=ledger.LEDGER_DIR, help="the ledger's folder")
+    led_add.add_argument("--ledger", default=defaults.LEDGER_DIR, help="the ledger's folder")
     led_add.add_argument(
         "--unclaimed",
         action="store_true",
@@ -261,12 +284,12 @@ def build_parser() -> argparse.ArgumentParser:
     led_report = led_commands.add_parser(
         "report", help="regenerate docs/results/ (report, figures, results page) and the README's headline from the ledger"
     )
-    led_report.add_argument("--ledger", default=ledger.LEDGER_DIR, help="the ledger's folder")
-    led_report.add_argument("--docs", default=ledger.DOCS_DIR, help="folder of the full report and its figures")
+    led_report.add_argument("--ledger", default=defaults.LEDGER_DIR, help="the ledger's folder")
+    led_report.add_argument("--docs", default=defaults.DOCS_DIR, help="folder of the full report and its figures")
     led_report.add_argument("--readme", default="README.md", help="the README whose results block is rewritten")
-    led_report.add_argument("--reps", type=int, default=ledger.LEDGER_REPS, help="bootstrap resamples of every interval")
+    led_report.add_argument("--reps", type=int, default=defaults.LEDGER_REPS, help="bootstrap resamples of every interval")
     led_report.set_defaults(func=_ledger_report)
-    for command in zoo.ZOO_COMMANDS:
+    for command in defaults.ZOO_COMMANDS:
         # Listed for --help; main() hands their arguments to rl-zoo3 untouched
         extra = "; --checkpoint-freq N: resumable, the same command resumes it" if command == "train" else ""
         commands.add_parser(command, add_help=False, help=f"rl-zoo3's {command} with sb3-sera's algorithms (zoo flags{extra})")
@@ -276,8 +299,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> None:
     """Entry point of ``sb3-sera``."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    route_mujoco_warnings()
-    if argv and argv[0] in zoo.ZOO_COMMANDS:
+    if argv and argv[0] in defaults.ZOO_COMMANDS:
+        from sb3_sera.common.arguments import UnknownKeywordError
+        from sb3_sera.experiments import zoo
+
         # rl-zoo3 parses these arguments itself: every zoo flag keeps working
         try:
             zoo.run_zoo(argv[0], argv[1:])
@@ -286,6 +311,12 @@ def main(argv: Sequence[str] | None = None) -> None:
         return
     parser = build_parser()
     args = parser.parse_args(argv)
+    # Parsed: now the command's modules (torch, Stable-Baselines3)
+    import yaml
+
+    from sb3_sera.common.arguments import UnknownKeywordError
+    from sb3_sera.experiments.backends import Interrupted
+
     try:
         args.func(args)
     except KeyboardInterrupt:

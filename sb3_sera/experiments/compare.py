@@ -12,17 +12,13 @@ from typing import Any
 from sb3_sera.experiments import stats
 from sb3_sera.experiments.backends import default_threads, execute
 from sb3_sera.experiments.checkpoint import checkpoint_every
+from sb3_sera.experiments.defaults import DEFAULT_ALGOS, DEFAULT_ENV, DEFAULT_SEEDS, DEFAULT_TIMESTEPS
 from sb3_sera.experiments.engine import check_specs
 from sb3_sera.experiments.policy_kwargs import parse_value
 from sb3_sera.experiments.records import FINAL_EVALUATIONS, RunResult
 from sb3_sera.experiments.registry import algorithm_classes, check_task
 from sb3_sera.experiments.specs import check_matched, make_spec
 
-#: Default quick comparison: a task that SAC solves in a few thousand steps
-DEFAULT_ENV = "Pendulum-v1"
-DEFAULT_ALGOS = ("serasac", "sac")
-DEFAULT_SEEDS = (0, 1)
-DEFAULT_TIMESTEPS = 6_000
 #: The level :func:`summary` decides at
 ALPHA = 0.05
 
@@ -150,7 +146,9 @@ def summary(results: Sequence[RunResult], algos: Sequence[str]) -> str:
             verdict = f"too few runs to decide (smallest possible p {decision.smallest_p:.3g} at {len(x)} against {len(y)})"
         else:
             ahead = f"{first} {'ahead' if decision.difference > 0 else 'behind'}"
-            verdict = f"p {decision.p:.3g}: " + (ahead if decision.p < ALPHA else "no difference shown")
+            verdict = f"p {decision.p:.3g}: " + (
+                ahead if decision.p < ALPHA else "not separated (not a finding of no difference)"
+            )
         lines.append(f"{head} {interval}; {verdict}")
     return "\n".join(lines)
 

@@ -24,6 +24,7 @@ from typing import Any
 from sb3_sera.experiments.claims import Claim, ClaimResult, default_claims, evaluate, load_claims
 from sb3_sera.experiments.claims_text import claims_section, family_sizes
 from sb3_sera.experiments.declared import seen_before_lines
+from sb3_sera.experiments.defaults import DOCS_DIR, LEDGER_DIR, LEDGER_REPS
 from sb3_sera.experiments.identity import IDENTITY_CHECK, identity_lines, load_code_hashes
 from sb3_sera.experiments.interim import held_back
 from sb3_sera.experiments.records import RunResult, env_name, read_record
@@ -31,18 +32,12 @@ from sb3_sera.experiments.report import Skipped, group_runs, load_runs, section_
 from sb3_sera.experiments.report.tables import resumed_lines
 from sb3_sera.experiments.report.write import section_claims
 
-#: The ledger's folder, at the top of the repository
-LEDGER_DIR = "results"
 #: The claims a ledger declares, in its folder
 CLAIMS_FILE = "claims.yml"
-#: Where the full report from the ledger goes
-DOCS_DIR = "docs/results"
 #: The docs' results page, in that folder: its generated block holds every table of the ledger
 RESULTS_PAGE = "index.md"
 #: The generated results lie between these lines, on the results page and in the README
 BEGIN, END = "<!-- ledger:begin -->", "<!-- ledger:end -->"
-#: Bootstrap resamples of the README's and docs' intervals
-LEDGER_REPS = 2000
 
 
 def find_ledger(start: str | Path | None = None) -> Path:

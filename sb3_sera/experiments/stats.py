@@ -22,10 +22,10 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike
 
+from sb3_sera.experiments.defaults import REPS
+
 #: Coverage of every confidence interval the report prints
 CONFIDENCE = 0.95
-#: Bootstrap replications by default
-REPS = 5000
 #: Seed of the bootstrap, so that a report made twice from the same runs prints the same intervals
 BOOTSTRAP_SEED = 0
 #: Splits a permutation test enumerates exactly; above this many it draws this many at random (seeded)

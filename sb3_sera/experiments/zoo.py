@@ -19,6 +19,7 @@ import gymnasium as gym
 from stable_baselines3.common.base_class import BaseAlgorithm
 
 from sb3_sera.common.capabilities import capabilities
+from sb3_sera.experiments.defaults import ZOO_COMMANDS
 from sb3_sera.experiments.evaluation import InitialStateBiasCallback
 from sb3_sera.experiments.registry import (
     HYPERPARAMS_DIR,
@@ -39,8 +40,6 @@ ZOO_BASE_ALGOS = {
 #: The algorithms with a search space of their own, declared on their classes (``tuning``)
 ZOO_TUNING = {name: capabilities(algo)["tuning"] for name, algo in ZOO_ALGOS.items() if capabilities(algo)["tuning"]}
 
-#: The zoo commands the CLI passes through
-ZOO_COMMANDS = ("train", "enjoy", "record-video", "optimize")
 #: The zoo commands that load a model only to run it
 PLAYBACK_COMMANDS = ("enjoy", "record-video")
 #: The package's off-policy algorithms (rl-zoo3's ``off_policy_algos``, which its enjoy and record-video load with a
