@@ -34,12 +34,12 @@ TINY_PEERS = ["--env", "Pendulum-v1", "--learning-starts", "20", "--blocks", "1"
             ["--ma-env", "sb3_sera/SimpleSpread-v0", *TINY_PEERS[:4], "--warmup-blocks", "0", *TINY_TIMING],
             "SERASAC-MA-loop",
         ),
-        # On a CPU, the parts of the GPU check that compile once each (the speed, split and many rows compile several
-        # models: minutes)
+        # On a CPU, two parts of the GPU check that compile once each (the speed, split and many rows compile several
+        # models: minutes; order compiles the step once more, as equality does)
         (
             "device_check.py",
             [
-                *("--device", "cpu", "--sections", "equality", "order", "gradients"),
+                *("--device", "cpu", "--sections", "equality", "gradients"),
                 *("--equality-steps", "2", "--gradient-steps", "2"),
             ],
             "| compiled vs eager gradients | median | largest gradient difference over 2 steps",
@@ -85,6 +85,7 @@ def test_benchmark_script_runs(script, args, expected):
     assert expected in result.stdout
 
 
+@pytest.mark.slow  # two minutes: the code-identity check's script, run where the ledger's identity table is remade
 def test_param_hashes_of_a_ledger_at_its_commits(tmp_path):
     # A one-run ledger made at this checkout's commit: the script hashes it in the working tree and at that commit
     head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True, check=True)

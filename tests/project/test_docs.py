@@ -13,7 +13,7 @@ from tests.helpers import ROOT
 README = (ROOT / "README.md").read_text()
 PYTHON_BLOCKS = re.findall(r"^```python\n(.*?)^```$", README, flags=re.DOTALL | re.MULTILINE)
 #: The one change made to a block before running it: every ``.learn(<integer>`` budget becomes this many steps
-TEST_BUDGET = 300
+TEST_BUDGET = 150
 LEARN_BUDGET = re.compile(r"\.learn\(\s*[0-9][0-9_]*")
 #: The paper's title, as the README and docs/SPEC.md cite it
 PAPER = "SERA: Soft Ensemble Reliability Aggregation for Robust Multi-Agent Reinforcement Learning"
