@@ -71,7 +71,14 @@ def run_folder(out: Path) -> Path:
     return folder
 
 
-@pytest.mark.parametrize("kind", sorted(TASKS))
+#: The kinds whose end-to-end check stays out of CI (a minute each): MuJoCo's state is restored in the MaMuJoCo one, an
+#: MPE run resumes in tests/experiments/test_checkpoint.py
+SLOW_KINDS = ("mujoco", "mpe")
+
+
+@pytest.mark.parametrize(
+    "kind", [pytest.param(kind, marks=pytest.mark.slow) if kind in SLOW_KINDS else kind for kind in sorted(TASKS)]
+)
 def test_a_run_interrupted_by_ctrl_c_resumes_from_the_command_line_to_the_uninterrupted_end(tmp_path, kind):
     task, episode = TASKS[kind]
     straight, resumed = tmp_path / "straight", tmp_path / "resumed"
