@@ -150,10 +150,11 @@ def execute(
     check_gpu_share(gpus_per_run, [spec.device for spec in specs])
     slots = None
     if gpus_per_run is not None and ray_address is None:
-        slots = gpu_slots(gpus_per_run, _visible_gpus())
+        visible = _visible_gpus()
+        slots = gpu_slots(gpus_per_run, visible)
         if not slots or (n_jobs or 0) > len(slots):
             raise ValueError(
-                f"--gpus-per-run {gpus_per_run} on this machine's {len(_visible_gpus())} GPU(s) holds {len(slots)} "
+                f"--gpus-per-run {gpus_per_run} on this machine's {len(visible)} GPU(s) holds {len(slots)} "
                 f"run(s) at a time" + (f", fewer than --n-jobs {n_jobs}" if slots else "")
             )
         n_jobs = n_jobs or len(slots)

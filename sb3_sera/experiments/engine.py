@@ -11,7 +11,6 @@ import socket
 import sys
 import time
 from collections.abc import Sequence
-from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
@@ -32,7 +31,18 @@ from sb3_sera.experiments.checkpoint import Checkpointer, has_checkpoint, load_c
 from sb3_sera.experiments.evaluation import InitialStateBiasCallback
 from sb3_sera.experiments.folders import notice, set_aside
 from sb3_sera.experiments.policy_kwargs import parse_policy_kwargs
-from sb3_sera.experiments.records import RESULT_FILE, RunResult, env_name, load_result, plain, records_dir, write_atomic
+from sb3_sera.experiments.records import (
+    RESULT_FILE,
+    RunResult,
+    append_record,
+    env_name,
+    load_result,
+    plain,
+    read_list,
+    records_dir,
+    utc_stamp,
+    write_atomic,
+)
 from sb3_sera.experiments.registry import RUN_KEYS, algorithm_classes
 from sb3_sera.experiments.specs import RunSpec
 
@@ -136,21 +146,6 @@ RESUMES_FILE = ".resumes.json"
 ATTEMPTS_FILE = ".attempts.json"
 
 
-def _pending(folder: Path, name: str) -> list[dict[str, Any]]:
-    """The records a run under way keeps in ``name`` (:data:`RESUMES_FILE`, :data:`ATTEMPTS_FILE`), oldest first."""
-    path = folder / name
-    return list(json.loads(path.read_text())) if path.exists() else []
-
-
-def _record(folder: Path, name: str, entry: dict[str, Any]) -> None:
-    """``entry`` added to the records a run under way keeps in ``name``."""
-    write_atomic(folder / name, json.dumps([*_pending(folder, name), entry]))
-
-
-def _now() -> str:
-    return datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
-
-
 def placement() -> dict[str, Any]:
     """
     Where this process makes a run: the host, the GPUs it may use (``CUDA_VISIBLE_DEVICES``, where set) and, in a
@@ -160,8 +155,8 @@ def placement() -> dict[str, Any]:
     if "CUDA_VISIBLE_DEVICES" in os.environ:
         where["cuda_visible_devices"] = os.environ["CUDA_VISIBLE_DEVICES"]
     ray = sys.modules.get("ray")  # imported in a Ray worker; never imported here for a local run
-    if ray is not None and ray.is_initialized() and ray.get_runtime_context().get_task_id() is not None:
-        context = ray.get_runtime_context()
+    context = ray.get_runtime_context() if ray is not None and ray.is_initialized() else None
+    if context is not None and context.get_task_id() is not None:
         where.update(ray_node=context.get_node_id(), ray_resources=context.get_assigned_resources())
     return where
 
@@ -193,7 +188,7 @@ def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
     # An interrupted run starts again here, maybe under newer code (or on another machine, a Ray task retried after
     # its node was lost): its record names the code that runs now, its resumes (below) the code before, and its
     # attempts where each start ran
-    _record(folder, ATTEMPTS_FILE, {"at": _now(), **placement()})
+    append_record(folder / ATTEMPTS_FILE, {"at": utc_stamp(), **placement()})
     records = records_dir(folder, spec.env_id) / "args.yml"
     code_before = (yaml.safe_load(records.read_text()) or {}).get("git_commit") if records.exists() else None
     args = plain(spec.args())
@@ -243,11 +238,11 @@ def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
         else:
             resume = {
                 "from_step": int(model.num_timesteps),
-                "at": _now(),
+                "at": utc_stamp(),
                 "code_before": code_before,
                 "code_after": args.get("git_commit"),
             }
-            _record(folder, RESUMES_FILE, resume)
+            append_record(folder / RESUMES_FILE, resume)
             notice(f"{folder}: resumed from step {model.num_timesteps:,}")
     if model is None:
         model = make_model(spec, make_env(str(folder)), tensorboard_log=str(folder))
@@ -272,8 +267,8 @@ def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
         "wall_time_s": wall_time,
         "torch_threads": th.get_num_threads(),
         "device": str(model.device),
-        "resumes": _pending(folder, RESUMES_FILE),
-        "attempts": _pending(folder, ATTEMPTS_FILE),
+        "resumes": read_list(folder / RESUMES_FILE),
+        "attempts": read_list(folder / ATTEMPTS_FILE),
     }
     write_atomic(folder / RESULT_FILE, json.dumps(result))
     for name in (RESUMES_FILE, ATTEMPTS_FILE):

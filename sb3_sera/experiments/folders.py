@@ -10,7 +10,6 @@ damaged is named with the file and the reason and left as it is. Any other run g
 the next free id, its records written at once (atomically). Every decision is announced per run.
 """
 
-import json
 import os
 import shutil
 import sys
@@ -18,7 +17,6 @@ import time
 import traceback
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
@@ -28,12 +26,14 @@ from sb3_sera.experiments.checkpoint import checkpoint_stamp, has_checkpoint
 from sb3_sera.experiments.provenance import code_difference
 from sb3_sera.experiments.records import (
     RESULT_FILE,
+    append_record,
     env_name,
     load_result,
     plain,
     read_record,
     records_dir,
     run_ids,
+    utc_stamp,
     write_atomic,
 )
 from sb3_sera.experiments.specs import RunSpec
@@ -125,16 +125,14 @@ ACCEPTED_FILE = "accepted.json"
 
 
 def _record_acceptance(folder: Path, reason: str, stale: str, recorded: dict[str, Any], current: dict[str, Any]) -> None:
-    path = folder / ACCEPTED_FILE
-    earlier = json.loads(path.read_text()) if path.exists() else []
     entry = {
-        "at": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "at": utc_stamp(),
         "reason": reason,
         "difference": stale,
         "code_then": {key: recorded.get(key) for key in ("git_commit", "run_code_digest", "code_digest")},
         "code_now": {key: current.get(key) for key in ("git_commit", "code_digest")},
     }
-    write_atomic(path, json.dumps([*earlier, entry], indent=1))
+    append_record(folder / ACCEPTED_FILE, entry, indent=1)
 
 
 #: What a run set aside by :func:`set_aside` says of why, in its folder

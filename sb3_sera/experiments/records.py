@@ -18,6 +18,7 @@ import math
 import os
 import zipfile
 from dataclasses import dataclass, field
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
@@ -62,6 +63,21 @@ def write_atomic(path: Path, text: str) -> None:
         os.replace(temporary, path)
     finally:
         temporary.unlink(missing_ok=True)
+
+
+def utc_stamp() -> str:
+    """Now in UTC, as the run records write it (``2026-11-27T10:05:35Z``)."""
+    return datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+def read_list(path: Path) -> list[dict[str, Any]]:
+    """The JSON list of records in ``path``, oldest first (none where it is missing)."""
+    return list(json.loads(path.read_text())) if path.exists() else []
+
+
+def append_record(path: Path, entry: dict[str, Any], indent: int | None = None) -> None:
+    """``entry`` added to the JSON list of records in ``path`` (:func:`read_list`), written whole or not at all."""
+    write_atomic(path, json.dumps([*read_list(path), entry], indent=indent))
 
 
 def read_record(path: Path) -> dict[str, Any]:
