@@ -12,9 +12,10 @@ and the first step at which it passes ``--bound`` with the parameter where it do
 ``--against eager-gathered`` compares the eager path with itself, its actor value taken as the compiled step takes
 it (every critic with a graph, the selected one gathered, where the eager path runs the selected critic alone);
 ``--against step-uncompiled`` with the compiled path's step function run eagerly (its masked Adam and target update,
-no ``torch.compile``); ``--against compiled-unordered`` with the step compiled without keeping its random
-draws in program order (:func:`unordered_draws`: how a step compiled before ``KeepRandomOrder``, with a torch before
-2.13, drew on CUDA).
+no ``torch.compile``); ``--against compiled-unordered`` with the step compiled without chaining its random draws
+(:func:`unordered_draws`: whether Inductor's scheduler alone keeps their order); ``--against compiled-fixed-draws``
+with both models' normal draws (how the actors sample) replaced by the same fixed numbers (:func:`fixed_draws`): what
+differs then is not the draws.
 """
 
 import argparse
@@ -32,11 +33,12 @@ from stable_baselines3.common.logger import configure
 from sb3_sera import SERASAC
 from sb3_sera.common import graph_passes
 from sb3_sera.common.compiled import base as compiled_base
+from sb3_sera.common.compiled.modes import CompileMode, compile_step
 from sb3_sera.sera import sera as sera_module
 from sb3_sera.sera.update import actor_value_gathered
 
 BATCH_SIZE, FILL = 32, 64
-AGAINST = ("compiled", "compiled-unordered", "eager-gathered", "step-uncompiled")
+AGAINST = ("compiled", "compiled-unordered", "compiled-fixed-draws", "eager-gathered", "step-uncompiled")
 
 
 def make_model(compile_update: bool, seed: int = 0, device: str = "cpu", **kwargs: Any) -> SERASAC:
@@ -133,7 +135,8 @@ def differences(
             found[step] = (difference, name)
 
     # The step is compiled at its first train() call
-    with unordered_draws() if against == "compiled-unordered" else contextlib.nullcontext():
+    drawing = {"compiled-unordered": unordered_draws, "compiled-fixed-draws": fixed_draws}
+    with drawing.get(against, contextlib.nullcontext)():
         train_in_step([eager, other], steps, on_step)
     return found
 
@@ -246,6 +249,138 @@ def unordered_draws() -> Iterator[None]:
         th._functorch.config.patch(enable_autograd_cache=False),
     ):
         yield
+
+
+@contextlib.contextmanager
+def fixed_draws() -> Iterator[None]:
+    """
+    In it every normal draw of ``torch.distributions.Normal.rsample`` (how SB3's squashed Gaussian actors sample),
+    eager or compiled, is the same fixed spread of numbers instead of the generator's; no compiled graph is taken from
+    this process's Dynamo cache.
+    """
+
+    def standard_normal(shape: tuple[int, ...], dtype: th.dtype | None, device: th.device | None) -> th.Tensor:
+        spread = th.arange(math.prod(shape), dtype=dtype, device=device).mul(1.7).add(0.3).sin().mul(1.5)
+        return spread.reshape(shape)
+
+    th._dynamo.reset()
+    with mock.patch.object(th.distributions.normal, "_standard_normal", standard_normal):
+        yield
+
+
+def _generator_state(device: str) -> th.Tensor:
+    return th.cuda.get_rng_state(device) if device.startswith("cuda") else th.get_rng_state()
+
+
+def _set_generator_state(device: str, state: th.Tensor) -> None:
+    if device.startswith("cuda"):
+        th.cuda.set_rng_state(state, device)
+    else:
+        th.set_rng_state(state)
+
+
+def _actor_draws(loc: th.Tensor, scale: th.Tensor) -> tuple[th.Tensor, ...]:
+    normal = th.distributions.Normal(loc, scale)
+    return normal.rsample(), normal.rsample()
+
+
+def _randn_draws(loc: th.Tensor, scale: th.Tensor) -> tuple[th.Tensor, ...]:
+    return th.randn(loc.shape, device=loc.device) * scale + loc, th.randn(loc.shape, device=loc.device)
+
+
+def _normal_draws(loc: th.Tensor, scale: th.Tensor) -> tuple[th.Tensor, ...]:
+    return th.empty_like(loc).normal_(), th.empty_like(loc).normal_() * scale
+
+
+#: The draws :func:`draw_account` compares: as an actor draws (``Normal.rsample``), ``randn``, in-place ``normal_``
+DRAWS: dict[str, Callable[[th.Tensor, th.Tensor], tuple[th.Tensor, ...]]] = {
+    "Normal.rsample": _actor_draws,
+    "randn": _randn_draws,
+    "normal_": _normal_draws,
+}
+
+
+def draw_account(device: str, mode: CompileMode) -> str:
+    """
+    Each of :data:`DRAWS` (two draws of a batch of two-dimensional actions), eager and compiled with ``mode`` (the
+    gradient step's options), from the same state of ``device``'s generator, after three compiled calls (compilation,
+    CUDA graph recording): the draws' largest difference, whether the compiled draws are eager's in the other order,
+    and whether the generator ends in the same state.
+    """
+    loc = th.zeros(BATCH_SIZE, 2, device=device)
+    scale = th.full_like(loc, 0.5)
+    accounts = []
+    for name, draw in DRAWS.items():
+        th._dynamo.reset()
+        compiled = compile_step(draw, mode)
+        for _ in range(3):
+            compiled(loc, scale)
+        state = _generator_state(device)
+        eager = draw(loc, scale)
+        after_eager = _generator_state(device)
+        _set_generator_state(device, state)
+        theirs = [tensor.clone() for tensor in compiled(loc, scale)]
+        same_end = th.equal(after_eager, _generator_state(device))
+        largest = max((mine - other).abs().max().item() for mine, other in zip(eager, theirs, strict=True))
+        swapped = th.equal(eager[0], theirs[1]) and th.equal(eager[1], theirs[0])
+        accounts.append(
+            f"{name}: {largest:.1e}{' (eager in the other order)' if swapped else ''}, generator after "
+            f"{'the same' if same_end else 'another'} state"
+        )
+    return "; ".join(accounts)
+
+
+def swapped_draws(train: Callable[..., None]) -> Callable[..., None]:
+    """
+    ``train`` (one gradient step a call) with its two normal draws (the actions at the observations, then at the next
+    observations) taken from the generator in the other order: both drawn at the first, the second given first.
+    """
+
+    def run(*args: Any, **kwargs: Any) -> None:
+        pending: list[th.Tensor] = []
+        draw = th.distributions.normal._standard_normal
+
+        def standard_normal(shape: tuple[int, ...], dtype: th.dtype | None, device: th.device | None) -> th.Tensor:
+            if pending:
+                return pending.pop()
+            pending.append(draw(shape, dtype, device))
+            return draw(shape, dtype, device)
+
+        with mock.patch.object(th.distributions.normal, "_standard_normal", standard_normal):
+            train(*args, **kwargs)
+
+    return run
+
+
+def step_draws_account(aggregation: str, device: str) -> str:
+    """
+    One gradient step of eager, eager with its two draws swapped (:func:`swapped_draws`) and compiled SERASAC from the
+    same state (after a first step of each, which compiles, the eager one's parameters, step-size statistics and Adam
+    states copied into the others) on the same batch and generator states: each eager model's largest parameter
+    difference to the compiled one, and whether each leaves the device's generator in the compiled step's state.
+    """
+    eager = make_model(False, actor_aggregation=aggregation, device=device)
+    swapped = make_model(False, actor_aggregation=aggregation, device=device)
+    swapped.train = swapped_draws(swapped.train)  # type: ignore[method-assign]
+    compiled = make_model(True, actor_aggregation=aggregation, device=device)
+    models = {"eager": eager, "eager, draws swapped": swapped, "compiled": compiled}
+    train_in_step(list(models.values()), 1, lambda step: None)
+    _copy_state(eager, swapped)
+    _copy_state(eager, compiled)
+    numpy_state, torch_state, state = np.random.get_state(), th.get_rng_state(), _generator_state(device)
+    after = {}
+    for name, model in models.items():
+        np.random.set_state(numpy_state)
+        th.set_rng_state(torch_state)
+        _set_generator_state(device, state)
+        model.train(gradient_steps=1, batch_size=BATCH_SIZE)
+        after[name] = _generator_state(device)
+    accounts = []
+    for name in ("eager", "eager, draws swapped"):
+        difference, where = largest_difference(models[name], compiled)
+        same = "the same" if th.equal(after[name], after["compiled"]) else "another"
+        accounts.append(f"{name} {difference:.1e} ({where}), generator after {same} state")
+    return "one step from the same state, against compiled: " + "; ".join(accounts)
 
 
 def compare(aggregation: str, against: str, steps: int, bound: float, report: list[int], device: str) -> None:

@@ -7,8 +7,14 @@ process, a table of
   and any :class:`~sb3_sera.common.compiled.CUDAGraphSkipWarning` with its reason;
 - ``compiled vs eager``: the largest parameter difference between eager and compiled SERASAC on CUDA after 1, 40 and
   100 gradient steps on the same batches and draws (``compiled_vs_eager.py``, every generator of the device reset);
-  with ``order``, also compiled without keeping the step's random draws in program order (``--against
-  compiled-unordered``: on the H100 with torch 2.11, 1.0e-3 after one step);
+  with ``order``, also compiled without chaining the step's random draws (``--against compiled-unordered``: whether
+  Inductor's scheduler alone keeps their order);
+- ``draws``: whether the compiled step's random draws are eager's on the device: two actor draws
+  (``Normal.rsample``) eager and compiled (``compile_update=True`` and, on CUDA, ``"reduce-overhead"``) from the same
+  generator state, and compiled against eager SERASAC again with every normal draw fixed to the same numbers in both
+  (``--against compiled-fixed-draws``): if the difference stays, the draws are not its cause; and one step of eager,
+  of eager with its two draws taken in the other order, and of compiled SERASAC from the same state
+  (``compiled_vs_eager.step_draws_account``): which eager order the compiled step's draws follow;
 - ``gradients``: eager and compiled SERASAC's gradients on CUDA, each step from the same parameters
   (``compiled_vs_eager.gradient_differences``): their largest relative difference, and whether the parameters that
   part after one step are those whose gradient is at rounding's scale (Adam's first step moves every element by about
@@ -26,10 +32,11 @@ process, a table of
   device at once: each one's ``learn()`` rate and their total, against one process's.
 
 Each rate is the median of ``--blocks`` blocks of ``--block-steps`` steps, with its ratio to SB3 SAC's rate (the
-single-agent rows) or to eager SERASAC's on the multi-agent task (the multi-agent rows). Every section takes about 11
-minutes on an H200 (2026-11-27: the sections up to ``speed`` 8.3 minutes, builds and install included; ``split`` and
-``many`` 2.2 more on the machine still warm), more than one call of the lent machine may run (10 minutes): run it as
-two calls, ``--sections cudagraphs equality order gradients speed`` and ``--sections split many``.
+single-agent rows) or to eager SERASAC's on the multi-agent task (the multi-agent rows). Every section takes about 13
+minutes on an H200 (2026-11-27: the sections up to ``speed`` but ``draws`` 8.3 minutes, builds and install included;
+``split`` and ``many`` 2.2 more on the machine still warm; ``draws`` with ``equality`` and ``split``, 100 equality
+steps, 3.7 minutes on a fresh machine), more than one call of the lent machine may run (10 minutes): run it as two
+calls, ``--sections cudagraphs equality order gradients speed`` and ``--sections draws split many``.
 
     bash benchmarks/device_check.sh                       # the wheels in .whl/, see docs/guide/developer.md
     python benchmarks/device_check.py --sections speed --blocks 5
@@ -58,7 +65,7 @@ from sb3_sera.common.compiled import CompiledUpdate, CUDAGraphSkipWarning
 from sb3_sera.common.host_reads import HostReads
 from sb3_sera.common.mujoco_log import route_mujoco_warnings
 
-SECTIONS = ("cudagraphs", "equality", "order", "gradients", "speed", "split", "many")
+SECTIONS = ("cudagraphs", "equality", "order", "draws", "gradients", "speed", "split", "many")
 
 
 def single_agent_models(env_id: str, cuda: bool) -> dict[str, Callable[[dict[str, Any]], BaseAlgorithm]]:
@@ -275,7 +282,17 @@ def main() -> None:
         emit([f"| cudagraphs | skipped graphs (Inductor's count) | {counters['inductor']['cudagraph_skips']} | |"])
         emit([f"| cudagraphs | warning | {' '.join(message.split())[:300]} | |" for message in skips])
     report = [step for step in (1, 40, 100) if step <= args.equality_steps]
-    compared = {"equality": ("compiled", ""), "order": ("compiled-unordered", ", draws in Inductor's order")}
+    if "draws" in args.sections:
+        modes: list[Any] = [True, "reduce-overhead"] if cuda else [True]
+        for mode in modes:
+            emit([f"| draws | compile_update={mode!r} | {compiled_vs_eager.draw_account(args.device, mode)} | |"])
+        for aggregation in args.aggregations:
+            emit([f"| draws | {aggregation} | {compiled_vs_eager.step_draws_account(aggregation, args.device)} | |"])
+    compared = {
+        "equality": ("compiled", ""),
+        "order": ("compiled-unordered", ", draws in Inductor's order"),
+        "draws": ("compiled-fixed-draws", ", the normal draws fixed"),
+    }
     for section, (against, how) in compared.items():
         if section not in args.sections:
             continue

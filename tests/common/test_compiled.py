@@ -168,6 +168,46 @@ def test_a_step_compiled_with_the_draws_chained_by_this_package_draws_as_eager(m
     assert chained == [2]
 
 
+def _used_in_reverse(x: th.Tensor, first: th.Tensor, second: th.Tensor) -> th.Tensor:
+    return th.stack([(x + second).exp(), (x - first) * 2])
+
+
+def draws_used_in_reverse(x: th.Tensor) -> th.Tensor:
+    """Two draws whose uses come in the other order: a pass that moves each draw to its first use swaps them."""
+    first = th.randn(4, 3)
+    second = th.randn(4, 3)
+    return _used_in_reverse(x, first, second)
+
+
+def move_draws_to_their_first_use(graph: th.fx.Graph) -> None:
+    """Inductor's locality pass before torch 2.13 as it treats random draws: each moved next to its first use."""
+    position = {node: index for index, node in enumerate(graph.nodes)}
+    for draw in graph_passes.random_draws(graph):
+        min(draw.users, key=position.__getitem__).prepend(draw)
+
+
+@pytest.mark.parametrize("locality", [False, True])
+def test_a_step_compiled_where_the_locality_pass_moves_draws_draws_as_eager(monkeypatch, locality):
+    # A torch before 2.13: no chain of its own, and a locality pass that moves draws (PyTorch issue 175156). The
+    # step's options turn that pass off there; forced on (the control), it swaps the two draws.
+    from torch._inductor.fx_passes import post_grad
+
+    monkeypatch.setattr(post_grad, "_chain_random_ops_for_ordering", lambda graph: None, raising=False)
+    monkeypatch.setattr(graph_passes, "torch_keeps_random_order", lambda: False)
+    monkeypatch.setattr(post_grad, "reorder_for_locality", move_draws_to_their_first_use)
+    options = step_options(True)
+    assert options["reorder_for_locality"] is False
+    x = th.randn(4, 3)
+    th._dynamo.reset()
+    with th._inductor.config.patch(fx_graph_cache=False):
+        compiled = th.compile(draws_used_in_reverse, fullgraph=True, options={**options, "reorder_for_locality": locality})
+        th.manual_seed(5)
+        drawn = th.randn(4, 3), th.randn(4, 3)
+        th.manual_seed(5)
+        result = compiled(x)
+    th.testing.assert_close(result, _used_in_reverse(x, *(reversed(drawn) if locality else drawn)))
+
+
 def _actions(algorithm: type, policy: str, env_id: str, compile_action: bool | None, **kwargs: Any) -> tuple[Any, int]:
     """
     Three of ``learn()``'s actions (``_sample_action``) of a fresh model, and how many the compiled actor took

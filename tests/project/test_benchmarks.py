@@ -4,6 +4,7 @@ import subprocess
 import sys
 
 import pytest
+import torch as th
 import yaml
 
 from tests.helpers import ROOT
@@ -116,3 +117,25 @@ def test_param_hashes_of_a_ledger_at_its_commits(tmp_path):
     assert result.returncode == 0, result.stderr[-2000:]
     header = next(line for line in result.stdout.splitlines() if line.startswith("| configuration |"))
     assert yaml.safe_load(table.read_text()) == written and "working tr" not in header
+
+
+def test_the_gpu_checks_draw_probes_on_a_cpu(monkeypatch):
+    # The device check's draws section, its parts that compile nothing or a draw alone (its step comparisons compile
+    # SERASAC's step three times: minutes, run by hand with --device cpu)
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    import compiled_vs_eager
+
+    assert compiled_vs_eager.draw_account("cpu", True).count("0.0e+00, generator after the same state") == 3
+    drawn: list[list[th.Tensor]] = []
+
+    def train() -> None:
+        drawn.append([th.distributions.normal._standard_normal((3,), None, None) for _ in range(2)])
+
+    th.manual_seed(0)
+    first, second = th.randn(3), th.randn(3)
+    th.manual_seed(0)
+    compiled_vs_eager.swapped_draws(train)()
+    assert th.equal(drawn[0][0], second) and th.equal(drawn[0][1], first)
+    with compiled_vs_eager.fixed_draws():
+        fixed = th.distributions.Normal(th.zeros(2, 3), th.ones(2, 3)).rsample()
+    th.testing.assert_close(fixed.flatten(), th.arange(6.0).mul(1.7).add(0.3).sin().mul(1.5))
