@@ -81,11 +81,16 @@ def largest_difference(first: SERASAC, second: SERASAC) -> tuple[float, str]:
     return differences[name], name
 
 
-def train_in_step(models: list[SERASAC], steps: int, on_step: Callable[[int], None]) -> None:
+def train_in_step(
+    models: list[SERASAC],
+    steps: int,
+    on_step: Callable[[int], None],
+    after_each: Callable[[SERASAC], None] = lambda model: None,
+) -> None:
     """
     One gradient step per ``train()`` call for each model, on the same batch and random draws: numpy's generator
     (the replay buffer's sampling), torch's CPU generator and, for models on a GPU, that device's generator, each set
-    back to the same state before every model's step.
+    back to the same state before every model's step; ``after_each`` called with each model after its step.
     """
     devices = sorted({model.device for model in models if model.device.type == "cuda"}, key=str)
     for step in range(1, steps + 1):
@@ -97,6 +102,7 @@ def train_in_step(models: list[SERASAC], steps: int, on_step: Callable[[int], No
             for device, state in zip(devices, device_states, strict=True):
                 th.cuda.set_rng_state(state, device)
             model.train(gradient_steps=1, batch_size=BATCH_SIZE)
+            after_each(model)
         on_step(step)
 
 
@@ -367,18 +373,16 @@ def step_draws_account(aggregation: str, device: str) -> str:
     train_in_step(list(models.values()), 1, lambda step: None)
     _copy_state(eager, swapped)
     _copy_state(eager, compiled)
-    numpy_state, torch_state, state = np.random.get_state(), th.get_rng_state(), _generator_state(device)
-    after = {}
-    for name, model in models.items():
-        np.random.set_state(numpy_state)
-        th.set_rng_state(torch_state)
-        _set_generator_state(device, state)
-        model.train(gradient_steps=1, batch_size=BATCH_SIZE)
-        after[name] = _generator_state(device)
+    after: dict[int, th.Tensor] = {}
+
+    def record_generator(model: SERASAC) -> None:
+        after[id(model)] = _generator_state(device)
+
+    train_in_step(list(models.values()), 1, lambda step: None, record_generator)
     accounts = []
     for name in ("eager", "eager, draws swapped"):
         difference, where = largest_difference(models[name], compiled)
-        same = "the same" if th.equal(after[name], after["compiled"]) else "another"
+        same = "the same" if th.equal(after[id(models[name])], after[id(compiled)]) else "another"
         accounts.append(f"{name} {difference:.1e} ({where}), generator after {same} state")
     return "one step from the same state, against compiled: " + "; ".join(accounts)
 
