@@ -25,10 +25,12 @@ demo: install
 	$(PY) -m sb3_sera compare
 
 # The test suite without the long learning checks (what CI runs), in TEST_WORKERS pytest-xdist processes with one
-# torch thread each (tests/conftest.py); TEST_WORKERS=0 runs it in this process, with torch's default threads
+# torch thread each (tests/conftest.py); TEST_WORKERS=0 runs it in this process, with torch's default threads. The tests
+# of one compiled step share a group (tests/helpers.py), run by one worker in turn: the first compiles, the rest hit
+# Inductor's cache
 TEST_WORKERS ?= 2
 test: install
-	$(PY) -m pytest -m "not slow" -n $(TEST_WORKERS)
+	$(PY) -m pytest -m "not slow" -n $(TEST_WORKERS) --dist loadgroup
 
 test-slow: install
 	$(PY) -m pytest -m slow

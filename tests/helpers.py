@@ -2,6 +2,7 @@
 comparisons of a model's torch state and of two runs' ends, and the command line run as a terminal runs it (Ctrl-C
 included)."""
 
+import copy
 import os
 import signal
 import subprocess
@@ -28,6 +29,29 @@ CTDE_TASK = "sb3_sera/SimpleSpread-v0"
 SMALL = dict(learning_starts=50, batch_size=32, buffer_size=2_000)
 #: The same on ``CTDE_TASK``, with a smaller buffer
 SMALL_CTDE = dict(learning_starts=50, batch_size=32, buffer_size=1_000)
+#: The multi-agent task compiled steps are tested on: three agents of different observation and action sizes (padded
+#: stacked actors)
+COMPILED_CTDE_TASK = "sb3_sera/Pusher-3p-v0"
+#: The settings of the compiled models the tests build, by algorithm family: one step per algorithm and task, compiled
+#: (seconds to a minute on a CPU) by the first test that builds it and found in Inductor's cache by the others. The tests
+#: that build one step share a ``pytest.mark.xdist_group`` (:data:`COMPILED_GROUP`): one pytest-xdist worker runs them
+#: in turn, so two never compile the same step at once
+_COMPILED_SETTINGS: dict[str, dict[str, Any]] = {
+    "serasac": dict(policy_kwargs=dict(n_critics=3, critic_archs=[[16], [16, 16], [24]], net_arch=[16])),
+    "sunrise": dict(n_members=3, policy_kwargs=dict(net_arch=[16])),
+    "ctde": dict(policy_kwargs=dict(net_arch=[16])),
+}
+#: Their pytest-xdist group, by the same names
+COMPILED_GROUP = {name: pytest.mark.xdist_group(f"compiled-{name}") for name in _COMPILED_SETTINGS}
+
+
+def compiled_settings(name: str) -> dict[str, Any]:
+    """
+    The keyword arguments of a compiled test model of family ``name`` (``"serasac"``, ``"sunrise"``, or ``"ctde"``:
+    MASAC, IET, MATD3, MADDPG): training after 64 steps, batches of 32, a buffer of 1,000 and small networks. A fresh
+    copy at each call: SB3's SAC writes ``use_sde`` into the ``policy_kwargs`` it is given, which TD3's policy refuses.
+    """
+    return dict(learning_starts=64, batch_size=32, buffer_size=1_000, **copy.deepcopy(_COMPILED_SETTINGS[name]))
 
 
 def snapshot(model: Any, optimizers: bool = False) -> dict[str, th.Tensor]:

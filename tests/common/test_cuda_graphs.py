@@ -13,45 +13,39 @@ from torch._dynamo.utils import counters
 from sb3_sera import SERASAC, SUNRISE
 from sb3_sera.common.compiled import CUDAGraphSkipWarning, cuda_graph_blockers, warn_if_cuda_graphs_skipped
 from sb3_sera.common.compiled.skips import watching_cuda_graphs
-from tests.helpers import assert_same_state, snapshot
-
-SMALL: dict[str, Any] = dict(seed=0, compile_update=True, learning_starts=64, batch_size=16, buffer_size=500)
+from tests.helpers import COMPILED_GROUP, assert_same_state, compiled_settings, snapshot
 
 
-def _serasac(policy: str, env: str) -> tuple[Any, Any]:
-    kwargs = dict(n_critics=2, critic_archs=[[8], [8, 8]], net_arch=[8])
-    model = SERASAC(policy, env, policy_kwargs=kwargs, **SMALL)
-    return model, model._gradient_step_graph
-
-
-def _sunrise() -> tuple[Any, Any]:
-    model = SUNRISE("MlpPolicy", "Pendulum-v1", n_members=2, policy_kwargs=dict(net_arch=[8]), **SMALL)
-    return model, model._gradient_step_graph
+def _build(algorithm: Any, policy: str, env: str, family: str) -> tuple[Any, Any, int]:
+    """A compiled model of the settings the compiled-step tests use (its step found in Inductor's cache), trained one
+    gradient step; its step's body and batch size."""
+    settings = compiled_settings(family)
+    model = algorithm(policy, env, seed=0, compile_update=True, **settings)
+    model.learn(settings["learning_starts"] + 1)
+    return model, model._gradient_step_graph, settings["batch_size"]
 
 
 MODELS = {
-    "serasac": lambda: _serasac("MlpPolicy", "Pendulum-v1"),
-    "serasac-ctde": lambda: _serasac("CTDEPolicy", "sb3_sera/SimpleSpread-v0"),
-    "sunrise": _sunrise,
+    "serasac": (SERASAC, "MlpPolicy", "Pendulum-v1", "serasac"),
+    "serasac-ctde": (SERASAC, "CTDEPolicy", "sb3_sera/SimpleSpread-v0", "serasac"),
+    "sunrise": (SUNRISE, "MlpPolicy", "Pendulum-v1", "sunrise"),
 }
 
 
-@pytest.mark.parametrize("name", sorted(MODELS))
+@pytest.mark.parametrize("name", [pytest.param(name, marks=COMPILED_GROUP[MODELS[name][-1]]) for name in sorted(MODELS)])
 def test_every_tensor_the_compiled_step_writes_has_a_fixed_address(name):
-    model, step = MODELS[name]()
-    model.learn(SMALL["learning_starts"] + 1)
+    model, step, batch_size = _build(*MODELS[name])
     before = snapshot(model, optimizers=True)
     # Before the fix: 130 inputs of a SERASAC step (the Adam states, the entropy coefficient) had none
-    assert cuda_graph_blockers(model, step, model.replay_buffer.sample(SMALL["batch_size"])) == []
+    assert cuda_graph_blockers(model, step, model.replay_buffer.sample(batch_size)) == []
     assert_same_state(before, snapshot(model, optimizers=True))
 
 
 def test_the_check_finds_a_written_input_without_a_fixed_address(monkeypatch):
     # The Adam states and the entropy coefficient as plain inputs again: each one is found, by Dynamo's name for it
     monkeypatch.setattr(th._dynamo, "mark_static_address", lambda tensor, guard=False: None)
-    model, step = _sunrise()
-    model.learn(SMALL["learning_starts"] + 1)
-    blockers = cuda_graph_blockers(model, step, model.replay_buffer.sample(SMALL["batch_size"]))
+    model, step, batch_size = _build(*MODELS["sunrise"])
+    blockers = cuda_graph_blockers(model, step, model.replay_buffer.sample(batch_size))
     states = [name for name in blockers if "_states_" in name]
     assert len(states) == sum(3 * len(plan.params) for plan in model._adam_plans)
     assert [name for name in blockers if name not in states] == ["l_self_log_ent_coef"]

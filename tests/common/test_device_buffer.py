@@ -13,7 +13,7 @@ from sb3_sera import MASAC, SERASAC, SUNRISE
 from sb3_sera.common.device_buffer import DeviceDictReplayBuffer, DeviceReplayBuffer, device_buffer_class
 from sb3_sera.experiments.checkpoint import _buffer_arrays, _restore_buffer
 from sb3_sera.sunrise.buffers import SUNRISEDeviceReplayBuffer, SUNRISEReplayBuffer
-from tests.helpers import CTDE_TASK, ENV_ID, SMALL, SMALL_CTDE
+from tests.helpers import COMPILED_CTDE_TASK, COMPILED_GROUP, ENV_ID, SMALL, compiled_settings
 
 OBSERVATION = spaces.Box(-10, 10, (3,), dtype=np.float32)
 ACTION = spaces.Box(-1, 1, (2,), dtype=np.float32)
@@ -124,9 +124,11 @@ def test_serasac_learns_saves_and_reloads_its_device_buffer(tmp_path):
     assert model.replay_buffer.size() == 210
 
 
+@COMPILED_GROUP["ctde"]
 def test_masac_compiled_learns_from_a_dict_device_buffer():
     buffer_class = DeviceDictReplayBuffer
-    model = MASAC("CTDEPolicy", CTDE_TASK, replay_buffer_class=buffer_class, compile_update=True, seed=0, **SMALL_CTDE)
+    settings = compiled_settings("ctde")
+    model = MASAC("CTDEPolicy", COMPILED_CTDE_TASK, replay_buffer_class=buffer_class, compile_update=True, seed=0, **settings)
     model.learn(120)
     assert isinstance(model.replay_buffer, DeviceDictReplayBuffer) and model.logger.name_to_value["train/critic_loss"] != 0
 
@@ -152,6 +154,7 @@ def test_a_checkpoint_keeps_a_device_buffers_transitions():
     assert (fresh.pos, fresh.full) == (buffer.pos, buffer.full)
 
 
+@COMPILED_GROUP["sunrise"]
 def test_sunrise_keeps_its_bootstrap_masks_on_the_device_and_learns_compiled(tmp_path):
     # The masks drawn as SUNRISE's own buffer draws them (NumPy's generator), stored and sampled with each transition
     host = SUNRISEReplayBuffer(8, OBSERVATION, ACTION, device="cpu", n_envs=2, n_members=3)
@@ -166,9 +169,8 @@ def test_sunrise_keeps_its_bootstrap_masks_on_the_device_and_learns_compiled(tmp
         assert th.equal(batch.masks, device.masks[t % 4, e])
     with pytest.raises(ValueError, match="SUNRISEDeviceReplayBuffer"):
         SUNRISE("MlpPolicy", ENV_ID, replay_buffer_class=DeviceReplayBuffer)
-    model = SUNRISE(
-        "MlpPolicy", ENV_ID, replay_buffer_class=SUNRISEDeviceReplayBuffer, compile_update=True, n_members=3, seed=0, **SMALL
-    )
+    buffer_class, settings = SUNRISEDeviceReplayBuffer, compiled_settings("sunrise")
+    model = SUNRISE("MlpPolicy", ENV_ID, replay_buffer_class=buffer_class, compile_update=True, seed=0, **settings)
     assert SUNRISE("MlpPolicy", ENV_ID, **SMALL).replay_buffer_class is SUNRISEReplayBuffer
     assert model._device_buffer_class() is SUNRISEDeviceReplayBuffer  # the default for CUDA graphs on CUDA
     model.learn(120)

@@ -15,6 +15,8 @@ from stable_baselines3.common.logger import configure
 from sb3_sera import IET, MADDPG, MASAC, MATD3
 from sb3_sera.common.compiled import count_graph_breaks, cuda_graph_blockers
 from tests.helpers import (
+    COMPILED_CTDE_TASK,
+    COMPILED_GROUP,
     CTDE_TASK,
     assert_compiled_equals_eager,
     assert_compiled_stays_with_eager,
@@ -22,16 +24,18 @@ from tests.helpers import (
     assert_non_finite_stops_the_step,
     assert_same_state,
     assert_schedule_does_not_recompile,
+    compiled_settings,
     snapshot,
 )
 
-ENV = "sb3_sera/Pusher-3p-v0"  # three agents of different observation and action sizes: padded stacked actors
-SETTINGS: dict[str, Any] = dict(learning_starts=64, batch_size=32, buffer_size=1_000, policy_kwargs=dict(net_arch=[16]))
+ENV = COMPILED_CTDE_TASK
+SETTINGS = compiled_settings("ctde")
+pytestmark = COMPILED_GROUP["ctde"]
 
 
 def build(compile_update: Any, **kwargs: Any) -> MASAC:
     """A MASAC that collected ``learning_starts`` transitions and made one gradient step (built and run in turn)."""
-    model = MASAC("CTDEPolicy", ENV, seed=0, compile_update=compile_update, **{**SETTINGS, **kwargs})
+    model = MASAC("CTDEPolicy", ENV, seed=0, compile_update=compile_update, **{**compiled_settings("ctde"), **kwargs})
     model.learn(SETTINGS["learning_starts"] + 1)
     return model
 
@@ -55,7 +59,7 @@ def test_the_compiled_step_equals_sb3_eager_one_and_saves(ent_coef, tmp_path):
 def test_iet_compiles_as_masac_does(tmp_path):
     # IET is MASAC with soft-modular actors that read per-episode latents: the same compiled step
     def build_iet(compile_update: bool) -> IET:
-        model = IET("CTDEPolicy", CTDE_TASK, seed=0, compile_update=compile_update, **SETTINGS)
+        model = IET("CTDEPolicy", CTDE_TASK, seed=0, compile_update=compile_update, **compiled_settings("ctde"))
         model.learn(SETTINGS["learning_starts"] + 1)
         return model
 
@@ -98,10 +102,7 @@ def test_a_learning_rate_schedule_does_not_recompile_the_step():
 def test_td3s_compiled_step_equals_sb3_eager_one(algorithm, tmp_path):
     # TD3: the actor and the targets every second update (4 steps after one: updates 2 and 4); DDPG: every update
     def build_td3(compile_update: bool) -> Any:
-        # Policy keywords of their own: SB3's SAC writes use_sde into the dict it is given, which TD3's policy refuses
-        model = algorithm(
-            "CTDEPolicy", ENV, seed=0, compile_update=compile_update, **{**SETTINGS, "policy_kwargs": dict(net_arch=[16])}
-        )
+        model = algorithm("CTDEPolicy", ENV, seed=0, compile_update=compile_update, **compiled_settings("ctde"))
         model.learn(SETTINGS["learning_starts"] + 1)
         return model
 
@@ -123,12 +124,10 @@ RECOMPILE_LIMIT_CHECKED = 9
 
 def test_a_process_compiles_many_models_of_one_class():
     # Each model's step is the same function on another self: Dynamo's default of 8 graphs a function stopped the
-    # ninth model of a class (fullgraph=True makes the limit an error)
+    # ninth model of a class (fullgraph=True makes the limit an error). The step of the test above: Inductor's cache
+    # holds it, and each model costs Dynamo's trace alone
     for seed in range(RECOMPILE_LIMIT_CHECKED):
-        # A policy_kwargs of its own (see above)
-        model = MATD3(
-            "CTDEPolicy", CTDE_TASK, seed=seed, compile_update=True, **{**SETTINGS, "policy_kwargs": dict(net_arch=[16])}
-        )
+        model = MATD3("CTDEPolicy", ENV, seed=seed, compile_update=True, **compiled_settings("ctde"))
         model.learn(SETTINGS["learning_starts"] + 1)
     assert model._n_updates == 1
 
@@ -136,7 +135,7 @@ def test_a_process_compiles_many_models_of_one_class():
 def test_the_compiled_train_keeps_sb3s_default_batch_size(monkeypatch):
     # train() without a batch_size: SB3 SAC's default (64) for MASAC, TD3's (100) for MATD3
     for algorithm, expected in ((MASAC, 64), (MATD3, 100)):
-        model = algorithm("CTDEPolicy", CTDE_TASK, compile_update=True, **{**SETTINGS, "policy_kwargs": dict(net_arch=[16])})
+        model = algorithm("CTDEPolicy", CTDE_TASK, compile_update=True, **compiled_settings("ctde"))
         model.set_logger(configure(None, []))
         calls: list[tuple[int, int]] = []
         monkeypatch.setattr(model, "_train_compiled", lambda steps, batch_size, calls=calls: calls.append((steps, batch_size)))

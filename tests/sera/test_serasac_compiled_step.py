@@ -16,21 +16,19 @@ from sb3_sera.common.compiled import count_graph_breaks
 from sb3_sera.common.device_buffer import DeviceReplayBuffer
 from sb3_sera.common.host_reads import HostReads
 from tests.helpers import (
+    COMPILED_GROUP,
     assert_close_state,
     assert_compiled_stays_with_eager,
     assert_gpu_trained_model_loads_on_the_cpu,
     assert_same_state,
     assert_schedule_does_not_recompile,
+    compiled_settings,
     snapshot,
 )
 
 #: One configuration for every compiled model of the file: the compiled graph is built once, then found in the cache
-SETTINGS: dict[str, Any] = dict(
-    learning_starts=64,
-    batch_size=32,
-    buffer_size=1_000,
-    policy_kwargs=dict(n_critics=3, critic_archs=[[16], [16, 16], [24]], net_arch=[16]),
-)
+SETTINGS = compiled_settings("serasac")
+pytestmark = COMPILED_GROUP["serasac"]
 STEPS = 4
 
 

@@ -6,15 +6,16 @@ from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_sera import SUNRISE
 from tests.helpers import (
+    COMPILED_GROUP,
     assert_compiled_equals_eager,
     assert_gpu_trained_model_loads_on_the_cpu,
     assert_non_finite_stops_the_step,
     assert_schedule_does_not_recompile,
+    compiled_settings,
 )
 
-SETTINGS: dict[str, Any] = dict(
-    learning_starts=64, batch_size=32, buffer_size=1_000, n_members=3, policy_kwargs=dict(net_arch=[16])
-)
+SETTINGS = compiled_settings("sunrise")
+pytestmark = COMPILED_GROUP["sunrise"]
 
 
 def build(compile_update: Any, **kwargs: Any) -> SUNRISE:

@@ -28,9 +28,10 @@ def cuda_graph_blockers(model: "CompiledUpdate", step: Callable[..., Any], batch
     The inputs of ``model``'s compiled gradient step (``step``, its body, as for :func:`count_graph_breaks`) that
     the step writes in place without a fixed address: each one makes Inductor skip CUDA graphs ("skipping cudagraphs
     due to mutated inputs"), since a graph replays its writes to the addresses it recorded. Found on any device, a
-    CPU included: the step is compiled as :func:`.compile_step` compiles it (without Inductor's caches, which would
-    skip the compilation looked at), run once with every update masked (the model is left as it was), and each
-    graph's mutated inputs are checked against its static ones as Inductor does before it records a CUDA graph
+    CPU included: the step is compiled as :func:`.compile_step` compiles it (without AOT autograd's cache, which would
+    skip Inductor's compiler looked at here; Inductor's own cache serves a step compiled before with its mutated
+    inputs), run once with every update masked (the model is left as it was), and each graph's mutated inputs are
+    checked against its static ones as Inductor does before it records a CUDA graph
     (``check_for_mutation_ignore_cuda_graph_managed_tensor``).
 
     :return: the inputs by Dynamo's names for them (``l_states_0_1_2_``: the Adam state of plan 0, parameter 1,
@@ -61,7 +62,6 @@ def cuda_graph_blockers(model: "CompiledUpdate", step: Callable[..., Any], batch
         return compile_fx(graph, example_inputs, inner_compile=inner, config_patches=step_options(False))
 
     compiled = th.compile(step, fullgraph=True, dynamic=False, backend=backend)
-    caches_off = th._inductor.config.patch(fx_graph_cache=False), th._functorch.config.patch(enable_autograd_cache=False)
-    with tracing(), caches_off[0], caches_off[1]:
+    with tracing(), th._functorch.config.patch(enable_autograd_cache=False):
         compiled(batch, **model._probe_arguments())
     return blockers
