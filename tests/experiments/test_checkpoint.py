@@ -38,9 +38,17 @@ def _parameters(folder, spec) -> dict[str, th.Tensor]:
     return copy.deepcopy(model.policy.state_dict())
 
 
+#: Small networks of each algorithm's kind (the zoo's are [256, 256]): a resume restores the same state whatever its sizes
+SMALL_NETWORKS = {
+    "serasac": "dict(net_arch=[32, 32], critic_archs=[[32, 32], [32], [48], [32, 32], [48]])",
+    "masac": "dict(net_arch=[32, 32])",
+    "iet": "dict(net_arch=[32, 32], hidden_dim=16)",
+}
+
+
 @pytest.mark.parametrize(("algo", "env_id"), [("serasac", "Pendulum-v1"), ("masac", CTDE_TASK), ("iet", CTDE_TASK)])
 def test_an_interrupted_run_resumes_to_the_same_final_parameters(tmp_path, monkeypatch, algo, env_id):
-    overrides = {"learning_starts": 100, "batch_size": 32, "buffer_size": 2000}
+    overrides = {"learning_starts": 100, "batch_size": 32, "buffer_size": 2000, "policy_kwargs": SMALL_NETWORKS[algo]}
     spec = make_spec(algo, algo, env_id, seed=0, n_timesteps=600, overrides=overrides, eval_freq=150, n_eval_episodes=1)
     spec.device = "cpu"
     # Uninterrupted, without checkpoints
