@@ -19,6 +19,7 @@ differs then is not the draws.
 """
 
 import argparse
+import ast
 import contextlib
 import math
 from collections.abc import Callable, Iterator
@@ -117,18 +118,26 @@ def gathered(train: Callable[..., None]) -> Callable[..., None]:
 
 
 def differences(
-    aggregation: str, against: str, steps: int, report: list[int], device: str = "cpu", bound: float = math.inf
+    aggregation: str,
+    against: str,
+    steps: int,
+    report: list[int],
+    device: str = "cpu",
+    bound: float = math.inf,
+    policy_kwargs: dict[str, Any] | None = None,
 ) -> dict[int, tuple[float, str]]:
     """
     The largest parameter difference between eager SERASAC and ``against`` (and the tensor where it is) after each
     step of ``report``; with a finite ``bound``, also under the key 0 the first step past it and its difference.
+    Both models are built with ``policy_kwargs`` (SERASAC's defaults where None).
     """
-    eager = make_model(False, actor_aggregation=aggregation, device=device)
+    settings: dict[str, Any] = dict(actor_aggregation=aggregation, device=device, policy_kwargs=policy_kwargs)
+    eager = make_model(False, **settings)
     if against == "step-uncompiled":
         with mock.patch.object(compiled_base, "compile_step", lambda step, mode: step):
-            other = make_model(True, actor_aggregation=aggregation, device=device)
+            other = make_model(True, **settings)
     else:
-        other = make_model(against.startswith("compiled"), actor_aggregation=aggregation, device=device)
+        other = make_model(against.startswith("compiled"), **settings)
     if against == "eager-gathered":
         other.train = gathered(other.train)  # type: ignore[method-assign]
     found: dict[int, tuple[float, str]] = {}
@@ -188,16 +197,19 @@ def _gradients(model: SERASAC, before: dict[str, th.Tensor]) -> dict[str, th.Ten
     return {name: (moment - beta1 * before.get(name, 0.0)) / (1 - beta1) for name, moment in moments.items()}
 
 
-def gradient_differences(aggregation: str, steps: int, device: str = "cpu") -> str:
+def gradient_differences(
+    aggregation: str, steps: int, device: str = "cpu", policy_kwargs: dict[str, Any] | None = None
+) -> str:
     """
-    Eager and compiled SERASAC's gradients, each step from the same state (the compiled model's set to the eager
-    one's before it, in place) on the same batch and draws; the gradients read from Adam's first moments. Returns the
-    account: the largest difference over ``steps`` steps relative to each tensor's largest eager gradient, and, after
-    the first step, the parameter elements that part by more than 1e-6, with their eager gradients against Adam's
-    ``eps`` and float32 rounding.
+    Eager and compiled SERASAC's gradients (both built with ``policy_kwargs``), each step from the same state (the
+    compiled model's set to the eager one's before it, in place) on the same batch and draws; the gradients read from
+    Adam's first moments. Returns the account: the largest difference over ``steps`` steps relative to each tensor's
+    largest eager gradient, and, after the first step, the parameter elements that part by more than 1e-6, with their
+    eager gradients against Adam's ``eps`` and float32 rounding.
     """
-    eager = make_model(False, actor_aggregation=aggregation, device=device)
-    compiled = make_model(True, actor_aggregation=aggregation, device=device)
+    settings: dict[str, Any] = dict(actor_aggregation=aggregation, device=device, policy_kwargs=policy_kwargs)
+    eager = make_model(False, **settings)
+    compiled = make_model(True, **settings)
     largest, account = 0.0, ""
     for step in range(1, steps + 1):
         _copy_state(eager, compiled)
@@ -358,17 +370,19 @@ def swapped_draws(train: Callable[..., None]) -> Callable[..., None]:
     return run
 
 
-def step_draws_account(aggregation: str, device: str) -> str:
+def step_draws_account(aggregation: str, device: str, policy_kwargs: dict[str, Any] | None = None) -> str:
     """
     One gradient step of eager, eager with its two draws swapped (:func:`swapped_draws`) and compiled SERASAC from the
     same state (after a first step of each, which compiles, the eager one's parameters, step-size statistics and Adam
     states copied into the others) on the same batch and generator states: each eager model's largest parameter
-    difference to the compiled one, and whether each leaves the device's generator in the compiled step's state.
+    difference to the compiled one, and whether each leaves the device's generator in the compiled step's state. The
+    three are built with ``policy_kwargs``.
     """
-    eager = make_model(False, actor_aggregation=aggregation, device=device)
-    swapped = make_model(False, actor_aggregation=aggregation, device=device)
+    settings: dict[str, Any] = dict(actor_aggregation=aggregation, device=device, policy_kwargs=policy_kwargs)
+    eager = make_model(False, **settings)
+    swapped = make_model(False, **settings)
     swapped.train = swapped_draws(swapped.train)  # type: ignore[method-assign]
-    compiled = make_model(True, actor_aggregation=aggregation, device=device)
+    compiled = make_model(True, **settings)
     models = {"eager": eager, "eager, draws swapped": swapped, "compiled": compiled}
     train_in_step(list(models.values()), 1, lambda step: None)
     _copy_state(eager, swapped)
@@ -387,8 +401,16 @@ def step_draws_account(aggregation: str, device: str) -> str:
     return "one step from the same state, against compiled: " + "; ".join(accounts)
 
 
-def compare(aggregation: str, against: str, steps: int, bound: float, report: list[int], device: str) -> None:
-    found = differences(aggregation, against, steps, report, device, bound)
+def compare(
+    aggregation: str,
+    against: str,
+    steps: int,
+    bound: float,
+    report: list[int],
+    device: str,
+    policy_kwargs: dict[str, Any] | None = None,
+) -> None:
+    found = differences(aggregation, against, steps, report, device, bound, policy_kwargs)
     row = [f"{found[step][0]:.1e}" for step in report]
     passed = "never" if 0 not in found else f"step {found[0][0]:.0f} ({found[0][1]})"
     print(f"| {aggregation} | {' | '.join(row)} | {passed} |", flush=True)
@@ -401,6 +423,7 @@ def main() -> None:
     parser.add_argument("--aggregations", nargs="+", default=["median", "mean", "min"])
     parser.add_argument("--bound", type=float, default=2e-5)
     parser.add_argument("--device", default="cpu", help="the models' torch device, e.g. cuda")
+    parser.add_argument("--policy-kwargs", type=ast.literal_eval, help="SERASAC's policy_kwargs, a Python dict literal")
     args = parser.parse_args()
     th.set_num_threads(1)
     report = [step for step in (1, 12, 16, 24, 40, 100, 200) if step <= args.steps]
@@ -408,7 +431,7 @@ def main() -> None:
     print(f"| actor aggregation | {' | '.join(str(step) for step in report)} | first above {args.bound:g} |")
     print(f"|---|{'---|' * len(report)}---|")
     for aggregation in args.aggregations:
-        compare(aggregation, args.against, args.steps, args.bound, report, args.device)
+        compare(aggregation, args.against, args.steps, args.bound, report, args.device, args.policy_kwargs)
 
 
 if __name__ == "__main__":

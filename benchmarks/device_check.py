@@ -44,6 +44,7 @@ calls, ``--sections cudagraphs equality order gradients speed`` and ``--sections
 """
 
 import argparse
+import ast
 import importlib.util
 import multiprocessing
 import time
@@ -256,6 +257,12 @@ def main() -> None:
     parser.add_argument("--equality-steps", type=int, default=100)
     parser.add_argument("--aggregations", nargs="+", default=["median"], help="actor aggregations compared")
     parser.add_argument("--device", default="cuda", help="cuda (the check), or cpu (a smoke run, without CUDA graphs)")
+    parser.add_argument(
+        "--policy-kwargs",
+        type=ast.literal_eval,
+        help="SERASAC's policy_kwargs in the equality, order, draws and gradients sections, a Python dict literal "
+        "(default: SERASAC's own)",
+    )
     parser.add_argument("--gradient-steps", type=int, default=100, help="steps of the gradients section")
     parser.add_argument("--split-steps", type=int, default=300, help="env steps (and replays) of the split section")
     parser.add_argument("--processes", type=int, nargs="+", default=[1, 4, 8], help="process counts of many")
@@ -287,7 +294,8 @@ def main() -> None:
         for mode in modes:
             emit([f"| draws | compile_update={mode!r} | {compiled_vs_eager.draw_account(args.device, mode)} | |"])
         for aggregation in args.aggregations:
-            emit([f"| draws | {aggregation} | {compiled_vs_eager.step_draws_account(aggregation, args.device)} | |"])
+            account = compiled_vs_eager.step_draws_account(aggregation, args.device, args.policy_kwargs)
+            emit([f"| draws | {aggregation} | {account} | |"])
     compared = {
         "equality": ("compiled", ""),
         "order": ("compiled-unordered", ", draws in Inductor's order"),
@@ -297,12 +305,14 @@ def main() -> None:
         if section not in args.sections:
             continue
         for aggregation in args.aggregations:
-            differences = compiled_vs_eager.differences(aggregation, against, args.equality_steps, report, args.device)
+            differences = compiled_vs_eager.differences(
+                aggregation, against, args.equality_steps, report, args.device, policy_kwargs=args.policy_kwargs
+            )
             cells = ", ".join(f"after {step}: {value:.1e} ({name})" for step, (value, name) in differences.items())
             emit([f"| compiled vs eager | {aggregation}{how} | {cells} | |"])
     if "gradients" in args.sections:
         for aggregation in args.aggregations:
-            account = compiled_vs_eager.gradient_differences(aggregation, args.gradient_steps, args.device)
+            account = compiled_vs_eager.gradient_differences(aggregation, args.gradient_steps, args.device, args.policy_kwargs)
             emit([f"| compiled vs eager gradients | {aggregation} | {account} | |"])
     if "speed" in args.sections:
         emit(speed_rows(single, "SB3 SAC eager", args))

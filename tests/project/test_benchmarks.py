@@ -7,7 +7,7 @@ import pytest
 import torch as th
 import yaml
 
-from tests.helpers import ROOT
+from tests.helpers import COMPILED_GROUP, ROOT, compiled_settings
 
 BENCHMARKS = ROOT / "benchmarks"
 TINY_TIMING = ["--blocks", "1", "--block-steps", "2", "--threads", "1"]
@@ -36,14 +36,17 @@ TINY_PEERS = ["--env", "Pendulum-v1", "--learning-starts", "20", "--blocks", "1"
             "SERASAC-MA-loop",
         ),
         # On a CPU, two parts of the GPU check that compile once each (the speed, split and many rows compile several
-        # models: minutes; order compiles the step once more, as equality does)
-        (
+        # models: minutes; order compiles the step once more, as equality does), at the compiled SERASAC tests'
+        # settings, whose step the tests of its group leave in Inductor's cache
+        pytest.param(
             "device_check.py",
             [
                 *("--device", "cpu", "--sections", "equality", "gradients"),
                 *("--equality-steps", "2", "--gradient-steps", "2"),
+                *("--policy-kwargs", repr(compiled_settings("serasac")["policy_kwargs"])),
             ],
             "| compiled vs eager gradients | median | largest gradient difference over 2 steps",
+            marks=COMPILED_GROUP["serasac"],
         ),
         ("type_one_error.py", ["--trials", "5"], "| skewed | 10-run arm |"),
         ("memory.py", ["--env", "Pendulum-v1", "--buffer-size", "1000", "--gradient-steps", "2"], "SERASAC"),
