@@ -142,3 +142,30 @@ def test_the_gpu_checks_draw_probes_on_a_cpu(monkeypatch):
     with compiled_vs_eager.fixed_draws():
         fixed = th.distributions.Normal(th.zeros(2, 3), th.ones(2, 3)).rsample()
     th.testing.assert_close(fixed.flatten(), th.arange(6.0).mul(1.7).add(0.3).sin().mul(1.5))
+
+
+def test_the_gpu_checks_comparisons_build_serasac_with_the_policy_kwargs_given(monkeypatch):
+    # --policy-kwargs reaches every model the equality, order, draws and gradients sections build
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    import compiled_vs_eager
+
+    class Built(Exception):
+        pass
+
+    seen = []
+
+    def make_model(compile_update: bool, **kwargs: object) -> None:
+        seen.append(kwargs["policy_kwargs"])
+        raise Built
+
+    monkeypatch.setattr(compiled_vs_eager, "make_model", make_model)
+    policy_kwargs = {"n_critics": 2, "net_arch": [8]}
+    checks = [
+        lambda: compiled_vs_eager.differences("median", "compiled", 1, [1], policy_kwargs=policy_kwargs),
+        lambda: compiled_vs_eager.gradient_differences("median", 1, policy_kwargs=policy_kwargs),
+        lambda: compiled_vs_eager.step_draws_account("median", "cpu", policy_kwargs=policy_kwargs),
+    ]
+    for check in checks:
+        with pytest.raises(Built):
+            check()
+    assert seen == [policy_kwargs] * 3
