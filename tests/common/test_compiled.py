@@ -25,13 +25,14 @@ from tests.helpers import CTDE_TASK, ENV_ID
 )
 def test_masked_adam_is_torchs_adam_where_applied_and_nothing_elsewhere(optimizer_class, kwargs):
     th.manual_seed(0)
-    reference = [th.nn.Parameter(th.randn(3, 2)), th.nn.Parameter(th.randn(4))]
+    # Two groups, the first of two parameters (updated as one)
+    reference = [th.nn.Parameter(th.randn(3, 2)), th.nn.Parameter(th.randn(5)), th.nn.Parameter(th.randn(4))]
     ours = [th.nn.Parameter(value.detach().clone()) for value in reference]
     torch_optimizer = optimizer_class(reference, lr=0.01, **kwargs)
-    our_optimizer = optimizer_class([ours[0]], lr=0.01, **kwargs)
-    our_optimizer.add_param_group({"params": [ours[1]], "lr": 0.02})
-    torch_optimizer.param_groups[0]["params"] = reference[:1]
-    torch_optimizer.add_param_group({"params": reference[1:], "lr": 0.02})
+    our_optimizer = optimizer_class(ours[:2], lr=0.01, **kwargs)
+    our_optimizer.add_param_group({"params": ours[2:], "lr": 0.02})
+    torch_optimizer.param_groups[0]["params"] = reference[:2]
+    torch_optimizer.add_param_group({"params": reference[2:], "lr": 0.02})
     plan = AdamPlan(our_optimizer, "test", lambda: ours)
     for step in range(4):
         grads = [th.randn_like(value) for value in reference]
@@ -76,6 +77,13 @@ def test_optimizers_a_masked_adam_cannot_follow_are_refused(optimizer, message):
     params = [th.nn.Parameter(th.zeros(1)), th.nn.Parameter(th.ones(2))]
     with pytest.raises(ValueError, match=message):
         AdamPlan(optimizer(params), "test", lambda: params)
+
+
+def test_a_group_of_two_dtypes_is_refused():
+    # A group's bias corrections are one vector, in its parameters' dtype
+    params = [th.nn.Parameter(th.zeros(1)), th.nn.Parameter(th.ones(2, dtype=th.float64))]
+    with pytest.raises(ValueError, match=r"each group of the test optimizer on one device with one dtype, got .*float64"):
+        AdamPlan(th.optim.Adam(params), "test", lambda: params)
 
 
 class _Output(NamedTuple):

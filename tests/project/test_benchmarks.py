@@ -48,6 +48,13 @@ TINY_PEERS = ["--env", "Pendulum-v1", "--learning-starts", "20", "--blocks", "1"
             "| compiled vs eager gradients | median | largest gradient difference over 2 steps",
             marks=COMPILED_GROUP["serasac"],
         ),
+        # One build at the compiled SERASAC tests' settings, whose step the tests of its group leave in Inductor's cache
+        pytest.param(
+            "compile_cost.py",
+            ["--this-cache", "--policy-kwargs", repr(compiled_settings("serasac")["policy_kwargs"])],
+            "| the environment's cache |",
+            marks=COMPILED_GROUP["serasac"],
+        ),
         ("type_one_error.py", ["--trials", "5"], "| skewed | 10-run arm |"),
         ("memory.py", ["--env", "Pendulum-v1", "--buffer-size", "1000", "--gradient-steps", "2"], "SERASAC"),
         (

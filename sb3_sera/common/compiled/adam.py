@@ -18,8 +18,9 @@ AdamState = tuple[th.Tensor, th.Tensor, th.Tensor]
 class AdamPlan:
     """
     What :func:`masked_adam` needs from a torch ``Adam`` or ``AdamW`` optimizer, fixed when the step is compiled: its
-    parameters in group order, each one's group, and each group's betas, eps and weight decay. The learning rates are
-    not part of the plan (they change without recompiling: :func:`masked_adam` takes them as tensors).
+    parameters in group order, which of them each group holds, and each group's betas, eps and weight decay. The
+    learning rates are not part of the plan (they change without recompiling: :func:`masked_adam` takes them as
+    tensors).
 
     A compiled step reads neither the optimizer nor its parameter list: Dynamo would guard on every value of the
     optimizer's groups (a scheduled learning rate would recompile the step at every ``train()`` call), and on every
@@ -50,7 +51,18 @@ class AdamPlan:
                 "in the same order): build the optimizer from the modules' parameters, or use compile_update=False"
             )
         self.parameters = parameters
-        self.group_of: list[int] = [index for index, group in enumerate(optimizer.param_groups) for _ in group["params"]]
+        # Each group's parameters by their place in params: a group is updated at once, its bias corrections a vector
+        self.members: list[list[int]] = []
+        for group in optimizer.param_groups:
+            first = sum(len(members) for members in self.members)
+            self.members.append(list(range(first, first + len(group["params"]))))
+            kinds = {(param.device, param.dtype) for param in group["params"]}
+            if len(kinds) > 1:
+                raise ValueError(
+                    f"compile_update needs each group of the {name} optimizer on one device with one dtype, got "
+                    f"{sorted(str(kind) for kind in kinds)}: move the modules to one device and dtype, or use "
+                    "compile_update=False"
+                )
         self.settings: list[tuple[float, float, float, float, bool]] = [
             (*group["betas"], group["eps"], group["weight_decay"], bool(group.get("decoupled_weight_decay", False)))
             for group in optimizer.param_groups
@@ -109,9 +121,14 @@ def masked_adam(
 
     The arithmetic is that of torch's ``Adam`` on the CPU, operation for operation: the bias corrections and the step
     size in float64 (torch computes them in Python floats), the moments by ``lerp`` and ``mul``/``addcmul``, and the
-    update as ``param - step_size * exp_avg / denom``. Run eagerly it gives torch's single-tensor ``Adam`` bit for
-    bit; computed in float32, the bias corrections alone made the compiled path drift from the eager one
-    (``benchmarks/compiled_vs_eager.py``).
+    update as ``param - step_size * exp_avg / denom``. Computed in float32, the bias corrections alone made the
+    compiled path drift from the eager one (``benchmarks/compiled_vs_eager.py``).
+
+    Each parameter group is updated by torch's multi-tensor (``_foreach``) operations, its bias corrections computed
+    as one vector: written an operation a parameter, Adam made most of a compiled step's graph (IET's 105 parameters:
+    3,300 of its 4,600 operations) and of the time to trace it. A group's float64 powers as a vector can differ from
+    Python's in their last bit (torch's vectorized ``pow``: 1% of the first 200,000 steps at beta 0.999 on an AVX2
+    CPU); the float32 step sizes and corrections made from them were torch's to the bit at all of those steps.
 
     :param grads: the gradient of each parameter, in the plan's order
     :param state: ``plan.state()``
@@ -119,42 +136,43 @@ def masked_adam(
     :param apply: a boolean scalar tensor
     """
     with th.no_grad():
-        # Each parameter's step size and second-moment correction, stacked into one tensor first: Inductor then
-        # computes each once, where it would otherwise recompute the float64 powers in every vector of the update
-        scalars = []
         params = plan.parameters()
-        for param, group, (step, _, _) in zip(params, plan.group_of, state, strict=True):
-            beta1, beta2 = plan.settings[group][:2]
-            dtype = scalar_dtype(param.device)
-            new_step = (step + 1).to(dtype)
-            bias_correction1 = 1 - th.pow(beta1, new_step)
-            bias_correction2_sqrt = (1 - th.pow(beta2, new_step)).sqrt()
-            scalars += [
-                (learning_rates[group].to(dtype) / bias_correction1).to(param.dtype),
-                bias_correction2_sqrt.to(param.dtype),
-            ]
-        corrections = th.stack(scalars)
-        for index, (param, grad, group, (step, exp_avg, exp_avg_sq)) in enumerate(
-            zip(params, grads, plan.group_of, state, strict=True)
-        ):
+        for group, members in enumerate(plan.members):
+            if not members:
+                continue
             beta1, beta2, eps, weight_decay, decoupled = plan.settings[group]
-            step_size, bias_correction2_sqrt = corrections[2 * index], corrections[2 * index + 1]
-            new_param = param
+            group_params = [params[index] for index in members]
+            group_grads: tuple[th.Tensor, ...] | list[th.Tensor] = [grads[index] for index in members]
+            steps, exp_avgs, exp_avg_sqs = ([state[index][entry] for index in members] for entry in range(3))
+            dtype, param_dtype = scalar_dtype(group_params[0].device), group_params[0].dtype
+            old_steps = th.stack(steps)
+            new_steps = old_steps + 1
+            exponents = new_steps.to(dtype)
+            rate = learning_rates[group].to(dtype)
+            # Stacked, they are computed once: Inductor would otherwise recompute the float64 powers of each
+            # parameter in every vector of its update
+            corrections = th.stack(
+                [
+                    (rate / (1 - th.pow(beta1, exponents))).to(param_dtype),
+                    (1 - th.pow(beta2, exponents)).sqrt().to(param_dtype),
+                ]
+            )
+            step_sizes, bias_corrections2_sqrt = corrections[0].unbind(), corrections[1].unbind()
+            new_params: tuple[th.Tensor, ...] | list[th.Tensor] = group_params
             if weight_decay != 0:
                 if decoupled:
-                    lr = learning_rates[group].to(scalar_dtype(param.device))
-                    new_param = param * (1 - lr * weight_decay).to(param.dtype)
+                    new_params = th._foreach_mul(group_params, (1 - rate * weight_decay).to(param_dtype))
                 else:
-                    grad = grad.add(param, alpha=weight_decay)
-            new_step = step + 1
-            new_exp_avg = exp_avg.lerp(grad, 1 - beta1)
-            new_exp_avg_sq = exp_avg_sq.mul(beta2).addcmul(grad, grad, value=1 - beta2)
-            denom = new_exp_avg_sq.sqrt() / bias_correction2_sqrt + eps
-            new_param = new_param - step_size * new_exp_avg / denom
-            param.copy_(th.where(apply, new_param, param))
-            exp_avg.copy_(th.where(apply, new_exp_avg, exp_avg))
-            exp_avg_sq.copy_(th.where(apply, new_exp_avg_sq, exp_avg_sq))
-            step.copy_(th.where(apply, new_step, step))
+                    group_grads = th._foreach_add(group_grads, group_params, alpha=weight_decay)
+            new_exp_avgs = th._foreach_lerp(exp_avgs, group_grads, 1 - beta1)
+            new_exp_avg_sqs = th._foreach_addcmul(
+                th._foreach_mul(exp_avg_sqs, beta2), group_grads, group_grads, value=1 - beta2
+            )
+            denoms = th._foreach_add(th._foreach_div(th._foreach_sqrt(new_exp_avg_sqs), bias_corrections2_sqrt), eps)
+            new_params = th._foreach_sub(new_params, th._foreach_div(th._foreach_mul(new_exp_avgs, step_sizes), denoms))
+            for olds, news in ((group_params, new_params), (exp_avgs, new_exp_avgs), (exp_avg_sqs, new_exp_avg_sqs)):
+                th._foreach_copy_(olds, [th.where(apply, new, old) for old, new in zip(olds, news, strict=True)])
+            th._foreach_copy_(steps, th.where(apply, new_steps, old_steps).unbind())
 
 
 def masked_polyak(targets: Sequence[th.Tensor], sources: Sequence[th.Tensor], tau: float, apply: th.Tensor) -> None:
