@@ -6,6 +6,7 @@ the step was not finite: parameters and state keep their values), so the step ne
 """
 
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import torch as th
 
@@ -124,11 +125,15 @@ def masked_adam(
     update as ``param - step_size * exp_avg / denom``. Computed in float32, the bias corrections alone made the
     compiled path drift from the eager one (``benchmarks/compiled_vs_eager.py``).
 
-    Each parameter group is updated by torch's multi-tensor (``_foreach``) operations, its bias corrections computed
-    as one vector: written an operation a parameter, Adam made most of a compiled step's graph (IET's 105 parameters:
-    3,300 of its 4,600 operations) and of the time to trace it. A group's float64 powers as a vector can differ from
-    Python's in their last bit (torch's vectorized ``pow``: 1% of the first 200,000 steps at beta 0.999 on an AVX2
-    CPU); the float32 step sizes and corrections made from them were torch's to the bit at all of those steps.
+    Each parameter group's bias corrections are computed as one vector, and on a CPU the group is updated by torch's
+    multi-tensor (``_foreach``) operations: written an operation a parameter, Adam made most of a compiled step's graph
+    (IET's 105 parameters: 3,300 of its 4,600 operations) and of the time to trace it. Elsewhere the same operations
+    run a parameter at a time (``multi_tensor``): on CUDA, torch 2.11's Inductor fails on the multi-tensor form (an
+    assertion while reordering loops, PyTorch issue 176591, or a kernel that names an argument it does not have) and,
+    with loop reordering off, compiles it to a step that parts from eager SERASAC by 3.0e-4 after one step (2.2e-7 a
+    parameter at a time; an H200, 2026-11-28). A group's float64 powers as a vector can differ from Python's in their
+    last bit (torch's vectorized ``pow``: 1% of the first 200,000 steps at beta 0.999 on an AVX2 CPU); the float32
+    step sizes and corrections made from them were torch's to the bit at all of those steps.
 
     :param grads: the gradient of each parameter, in the plan's order
     :param state: ``plan.state()``
@@ -142,7 +147,7 @@ def masked_adam(
                 continue
             beta1, beta2, eps, weight_decay, decoupled = plan.settings[group]
             group_params = [params[index] for index in members]
-            group_grads: tuple[th.Tensor, ...] | list[th.Tensor] = [grads[index] for index in members]
+            group_grads: Sequence[th.Tensor] = [grads[index] for index in members]
             steps, exp_avgs, exp_avg_sqs = ([state[index][entry] for index in members] for entry in range(3))
             dtype, param_dtype = scalar_dtype(group_params[0].device), group_params[0].dtype
             old_steps = th.stack(steps)
@@ -158,21 +163,55 @@ def masked_adam(
                 ]
             )
             step_sizes, bias_corrections2_sqrt = corrections[0].unbind(), corrections[1].unbind()
-            new_params: tuple[th.Tensor, ...] | list[th.Tensor] = group_params
+            foreach = multi_tensor(group_params[0].device)
+            new_params: Sequence[th.Tensor] = group_params
             if weight_decay != 0:
                 if decoupled:
-                    new_params = th._foreach_mul(group_params, (1 - rate * weight_decay).to(param_dtype))
+                    new_params = _each(foreach, "mul", group_params, (1 - rate * weight_decay).to(param_dtype))
                 else:
-                    group_grads = th._foreach_add(group_grads, group_params, alpha=weight_decay)
-            new_exp_avgs = th._foreach_lerp(exp_avgs, group_grads, 1 - beta1)
-            new_exp_avg_sqs = th._foreach_addcmul(
-                th._foreach_mul(exp_avg_sqs, beta2), group_grads, group_grads, value=1 - beta2
+                    group_grads = _each(foreach, "add", group_grads, group_params, alpha=weight_decay)
+            new_exp_avgs = _each(foreach, "lerp", exp_avgs, group_grads, 1 - beta1)
+            new_exp_avg_sqs = _each(
+                foreach, "addcmul", _each(foreach, "mul", exp_avg_sqs, beta2), group_grads, group_grads, value=1 - beta2
             )
-            denoms = th._foreach_add(th._foreach_div(th._foreach_sqrt(new_exp_avg_sqs), bias_corrections2_sqrt), eps)
-            new_params = th._foreach_sub(new_params, th._foreach_div(th._foreach_mul(new_exp_avgs, step_sizes), denoms))
+            denoms = _each(
+                foreach, "add", _each(foreach, "div", _each(foreach, "sqrt", new_exp_avg_sqs), bias_corrections2_sqrt), eps
+            )
+            new_params = _each(
+                foreach, "sub", new_params, _each(foreach, "div", _each(foreach, "mul", new_exp_avgs, step_sizes), denoms)
+            )
             for olds, news in ((group_params, new_params), (exp_avgs, new_exp_avgs), (exp_avg_sqs, new_exp_avg_sqs)):
-                th._foreach_copy_(olds, [th.where(apply, new, old) for old, new in zip(olds, news, strict=True)])
-            th._foreach_copy_(steps, th.where(apply, new_steps, old_steps).unbind())
+                _commit(foreach, olds, [th.where(apply, new, old) for old, new in zip(olds, news, strict=True)])
+            _commit(foreach, steps, th.where(apply, new_steps, old_steps).unbind())
+
+
+def multi_tensor(device: th.device) -> bool:
+    """Whether :func:`masked_adam` updates a group on ``device`` by torch's multi-tensor operations: on a CPU alone."""
+    return device.type == "cpu"
+
+
+def _each(foreach: bool, operation: str, *args: Any, **kwargs: Any) -> list[th.Tensor]:
+    """
+    torch's ``operation`` on each tensor of the lists among ``args`` (the other arguments shared by all): with
+    ``foreach``, its multi-tensor form ``torch._foreach_<operation>`` (one operation of the traced graph for the list),
+    else one call a tensor.
+    """
+    if foreach:
+        return list(getattr(th, f"_foreach_{operation}")(*args, **kwargs))
+    count = len(args[0])
+    columns = [arg if isinstance(arg, (list, tuple)) else [arg] * count for arg in args]
+    return [getattr(th, operation)(*row, **kwargs) for row in zip(*columns, strict=True)]
+
+
+def _commit(
+    foreach: bool, targets: list[th.Tensor] | tuple[th.Tensor, ...], values: list[th.Tensor] | tuple[th.Tensor, ...]
+) -> None:
+    """Each of ``values`` copied into its target (:func:`_each`'s two forms)."""
+    if foreach:
+        th._foreach_copy_(targets, values)
+    else:
+        for target, value in zip(targets, values, strict=True):
+            target.copy_(value)
 
 
 def masked_polyak(targets: Sequence[th.Tensor], sources: Sequence[th.Tensor], tau: float, apply: th.Tensor) -> None:
