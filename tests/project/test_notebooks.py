@@ -72,15 +72,17 @@ def test_notebook_opens_on_the_ledger_without_training(path, tmp_path, monkeypat
     for variant in variants:
         for seed in range(3):
             ledger_run(ledger, variant, env_id, seed, n_critics if variant == "serasac" else 2)
-    cwd = tmp_path / "cwd"
+    cwd, temporary = tmp_path / "cwd", tmp_path / "tmp"
     cwd.mkdir()
-    notebook = execute(path, cwd, monkeypatch, SB3_SERA_LEDGER=str(ledger))
+    temporary.mkdir()
+    notebook = execute(path, cwd, monkeypatch, SB3_SERA_LEDGER=str(ledger), TMPDIR=str(temporary))
     text, images = outputs_of(notebook)
     assert f"6 runs of {env_id} at 50,000 steps" in text
     assert "final return IQM [95% CI]" in text and "| serasac | 3 |" in text
-    # Curves, bias, AUC, diagnostics and correlation matrices, nothing trained or written beside the notebook
+    # Curves, bias, AUC, diagnostics and correlation matrices, nothing trained or written beside the notebook, and
+    # the figures' temporary folder gone with the kernel
     assert images == 5
-    assert not list(cwd.iterdir()) and not list(ledger.rglob("*.zip"))
+    assert not list(cwd.iterdir()) and not list(ledger.rglob("*.zip")) and not list(temporary.iterdir())
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda path: path.stem)
