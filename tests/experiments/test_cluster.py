@@ -14,6 +14,10 @@ from sb3_sera.experiments.engine import ATTEMPTS_FILE
 from sb3_sera.experiments.records import load_result
 from tests.helpers import assert_same_end, tiny_grid
 
+#: One pytest-xdist worker runs the file's Ray instances in turn; each test starts its own (``"local"``: a
+#: ``ray.init()`` without an address joins a Ray cluster already running on the machine, and refuses ``num_cpus`` there)
+pytestmark = pytest.mark.xdist_group("ray")
+
 GRID = tiny_grid("ensemble_mean: {algo: serasac, target_aggregation: mean}")
 #: Two runs long enough to lose a node in the middle of one: a checkpoint every 200 of 1,000 steps, small networks
 LONG_GRID = GRID.replace("n_timesteps: 200", "n_timesteps: 1000").replace(
@@ -66,7 +70,7 @@ def test_grid_on_a_local_ray_instance_with_a_gpu_shared_by_its_runs(tmp_path):
     ray = ray_or_skip()
     # A GPU by Ray's accounting alone: the runs are given half of it each, and train where torch finds it (here, the
     # CPU: torch sees no CUDA device)
-    ray.init(num_cpus=2, num_gpus=1, include_dashboard=False, log_to_driver=False)
+    ray.init("local", num_cpus=2, num_gpus=1, include_dashboard=False, log_to_driver=False)
     try:
         address = ray.get_runtime_context().gcs_address
         results = bench.run_grid(write(tmp_path, GRID), str(tmp_path / "out"), ray_address=address, gpus_per_run=0.5)
@@ -140,7 +144,7 @@ def test_a_run_that_fails_for_its_own_reasons_is_not_retried_on_ray(tmp_path, mo
     # A non-finite loss at the first gradient step, after the first evaluation (the run's folder stays): the run's
     # own failure, which a retry would only repeat
     grid = GRID.replace("learning_starts: 50", "learning_starts: 150, target_entropy: .nan")
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    ray.init("local", num_cpus=2, include_dashboard=False, log_to_driver=False)
     try:
         address = ray.get_runtime_context().gcs_address
         with pytest.raises(RuntimeError, match=r"2 of 2 run\(s\) failed: .*FloatingPointError"):
