@@ -71,18 +71,18 @@ def cuda_graph_blockers(model: "CompiledUpdate", step: Callable[..., Any], batch
     names: list[str] = []
 
     def inner(graph: th.fx.GraphModule, example_inputs: Sequence[Any], **kwargs: Any) -> Any:
-        static = list(kwargs.get("static_input_idxs", ()))
+        static = set(kwargs.get("static_input_idxs", ()))
         placeholders = [node.name for node in graph.graph.nodes if node.op == "placeholder"]
         mutated = _written_inputs(graph)
         with th._inductor.config.patch({"triton.cudagraph_trees": True}):
             reason = check_for_mutation_ignore_cuda_graph_managed_tensor(
-                graph, OrderedSet(placeholders[index] for index in mutated), OrderedSet(mutated), static
+                graph, OrderedSet(placeholders[index] for index in mutated), OrderedSet(mutated), sorted(static)
             )
         if reason is not None:
             # Dynamo's names where AOT autograd kept its inputs one for one (it does for a step without parameters
             # that need a gradient outside the graph), else AOT's own
             readable = names if len(names) == len(placeholders) else placeholders
-            blockers.extend(readable[index] for index in mutated if index not in set(static))
+            blockers.extend(readable[index] for index in mutated if index not in static)
         return make_boxed_func(graph.forward)
 
     def backend(graph: th.fx.GraphModule, example_inputs: Sequence[Any]) -> Any:
