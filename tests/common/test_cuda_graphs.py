@@ -17,11 +17,18 @@ from tests.helpers import COMPILED_GROUP, assert_same_state, compiled_settings, 
 
 
 def _build(algorithm: Any, policy: str, env: str, family: str) -> tuple[Any, Any, int]:
-    """A compiled model of the settings the compiled-step tests use (its step found in Inductor's cache), trained one
-    gradient step; its step's body and batch size."""
+    """
+    A model with ``compile_update=True`` of the settings the compiled-step tests use, its buffer filled up to
+    ``learning_starts``; its step's body and batch size. The step is never run: the check traces it without
+    generating code, and running it would compile it with Inductor (a step these tests never run, such as SUNRISE's
+    without its static marks, compiled cold in every CI run).
+    """
     settings = compiled_settings(family)
     model = algorithm(policy, env, seed=0, compile_update=True, **settings)
-    model.learn(settings["learning_starts"] + 1)
+    model.learn(settings["learning_starts"])
+    assert model._n_updates == 0
+    for plan in model._adam_plans:  # the Adam states, made as the first step makes them
+        plan.state()
     return model, model._gradient_step_graph, settings["batch_size"]
 
 

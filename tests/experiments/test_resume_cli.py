@@ -72,8 +72,9 @@ def run_folder(out: Path) -> Path:
 
 
 #: The kinds whose end-to-end check stays out of CI (a minute each): MuJoCo's state is restored in the MaMuJoCo one, an
-#: MPE run resumes in tests/experiments/test_checkpoint.py
-SLOW_KINDS = ("mujoco", "mpe")
+#: MPE run resumes in tests/experiments/test_checkpoint.py, and a Pendulum run resumes there and from the command line
+#: below (``sb3-sera train``), while the MaMuJoCo kind takes ``compare`` through the same Ctrl-C and resume
+SLOW_KINDS = ("classic-control", "mujoco", "mpe")
 
 
 @pytest.mark.parametrize(
