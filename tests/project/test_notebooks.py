@@ -92,7 +92,7 @@ def test_notebook_trains_when_asked(path, tmp_path, monkeypatch):
         tmp_path,
         monkeypatch,
         SB3_SERA_NOTEBOOK_TRAIN="1",
-        SB3_SERA_NOTEBOOK_STEPS="300",
+        SB3_SERA_NOTEBOOK_STEPS="150",
         SB3_SERA_NOTEBOOK_OUT=str(tmp_path),
     )
     text, images = outputs_of(notebook)
@@ -102,7 +102,7 @@ def test_notebook_trains_when_asked(path, tmp_path, monkeypatch):
     assert (report / "report.md").exists()
     assert images >= 4
     for figure in ("curves", "bias", "diagnostics", "correlations"):
-        assert len(list(report.glob(f"*_300_{figure}.png"))) == 1
+        assert len(list(report.glob(f"*_150_{figure}.png"))) == 1
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda path: path.stem)
