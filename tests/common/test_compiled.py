@@ -245,8 +245,8 @@ def _actions(algorithm: type, policy: str, env_id: str, compile_action: bool | N
         (SERASAC, "MlpPolicy", ENV_ID, dict(policy_kwargs=dict(net_arch=[8]))),
         (SUNRISE, "MlpPolicy", ENV_ID, dict(n_members=3, policy_kwargs=dict(net_arch=[8]))),
         (MASAC, "CTDEPolicy", CTDE_TASK, dict(policy_kwargs=dict(net_arch=[8]))),
-        # IET's actor out of CI: two minutes of compiling on a cold cache, and its network is compiled in IET's step
-        # (tests/ctde/test_compiled_steps.py); acting through it is the other algorithms' code
+        # IET's actor out of CI: two minutes of compiling on a cold cache; CI traces its network in IET's step
+        # (tests/common/test_cuda_graphs.py), and acting through it is the other algorithms' code
         pytest.param(IET, "CTDEPolicy", CTDE_TASK, dict(policy_kwargs=dict(net_arch=[8])), marks=pytest.mark.slow),
         (MATD3, "CTDEPolicy", CTDE_TASK, dict(policy_kwargs=dict(net_arch=[8]), action_noise=None)),
     ],

@@ -10,10 +10,10 @@ import pytest
 import torch as th
 from torch._dynamo.utils import counters
 
-from sb3_sera import SERASAC, SUNRISE
+from sb3_sera import IET, SERASAC, SUNRISE
 from sb3_sera.common.compiled import CUDAGraphSkipWarning, cuda_graph_blockers, warn_if_cuda_graphs_skipped
 from sb3_sera.common.compiled.skips import watching_cuda_graphs
-from tests.helpers import COMPILED_GROUP, assert_same_state, compiled_settings, snapshot
+from tests.helpers import COMPILED_GROUP, CTDE_TASK, assert_same_state, compiled_settings, snapshot
 
 
 def _build(algorithm: Any, policy: str, env: str, family: str) -> tuple[Any, Any, int]:
@@ -34,7 +34,8 @@ def _build(algorithm: Any, policy: str, env: str, family: str) -> tuple[Any, Any
 
 MODELS = {
     "serasac": (SERASAC, "MlpPolicy", "Pendulum-v1", "serasac"),
-    "serasac-ctde": (SERASAC, "CTDEPolicy", "sb3_sera/SimpleSpread-v0", "serasac"),
+    "serasac-ctde": (SERASAC, "CTDEPolicy", CTDE_TASK, "serasac"),
+    "iet": (IET, "CTDEPolicy", CTDE_TASK, "ctde"),
     "sunrise": (SUNRISE, "MlpPolicy", "Pendulum-v1", "sunrise"),
 }
 

@@ -173,6 +173,7 @@ def test_learning_rate_schedules_do_not_recompile_the_step():
     assert_schedule_does_not_recompile(model, SETTINGS["batch_size"], rate)
 
 
+@pytest.mark.slow  # its step is traced in CI (tests/common/test_cuda_graphs.py); the code for it cost CI 64 s cold
 def test_the_multi_agent_step_compiles_and_equals_the_eager_one():
     models = [build(flag, "CTDEPolicy", "sb3_sera/SimpleSpread-v0") for flag in (False, True)]
     eager_logged, compiled_logged = train_both(models, 2)
