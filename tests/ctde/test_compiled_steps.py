@@ -34,9 +34,10 @@ SETTINGS = compiled_settings("ctde")
 pytestmark = COMPILED_GROUP["ctde"]
 
 
-def build(compile_update: Any, **kwargs: Any) -> MASAC:
-    """A MASAC that collected ``learning_starts`` transitions and made one gradient step (built and run in turn)."""
-    model = MASAC("CTDEPolicy", ENV, seed=0, compile_update=compile_update, **{**compiled_settings("ctde"), **kwargs})
+def build(compile_update: Any, algorithm: Any = MASAC, env: str = ENV, **kwargs: Any) -> Any:
+    """A multi-agent model (MASAC on the compiled task unless asked) that collected ``learning_starts`` transitions
+    and made one gradient step (built and run in turn)."""
+    model = algorithm("CTDEPolicy", env, seed=0, compile_update=compile_update, **{**compiled_settings("ctde"), **kwargs})
     model.learn(SETTINGS["learning_starts"] + 1)
     return model
 
@@ -57,19 +58,12 @@ def test_the_compiled_step_equals_sb3_eager_one_and_saves(ent_coef, tmp_path):
     assert_gpu_trained_model_loads_on_the_cpu(compiled, tmp_path / "gpu_model", gym.make(ENV))
 
 
-def _build_iet(compile_update: bool) -> IET:
-    """An IET on Simple Spread's three agents, built and trained as :func:`build` builds MASAC."""
-    model = IET("CTDEPolicy", CTDE_TASK, seed=0, compile_update=compile_update, **compiled_settings("ctde"))
-    model.learn(SETTINGS["learning_starts"] + 1)
-    return model
-
-
 @pytest.mark.slow  # IET's step is traced in CI (tests/common/test_cuda_graphs.py); its code cost CI 176 s cold
 def test_iet_compiles_as_masac_does(tmp_path):
     # IET is MASAC with soft-modular actors that read per-episode latents: the same compiled step. Each agent's actor
     # is a network of its own in the graph
     assert IET.compiles_update and "compile_update" in inspect.signature(IET).parameters
-    eager, compiled, _ = assert_compiled_equals_eager(_build_iet, SETTINGS["batch_size"])
+    eager, compiled, _ = assert_compiled_equals_eager(partial(build, algorithm=IET, env=CTDE_TASK), SETTINGS["batch_size"])
     # On a fixed buffer only: IET's training amplifies any difference (two eager models 5e-6 apart part by 1e-2 in 100
     # steps), so in learn() rounding alone parts the two by 1e-2 (docs/speed.md)
     assert_compiled_stays_with_eager([eager, compiled], SETTINGS["batch_size"], learn_steps=0)
@@ -107,12 +101,9 @@ def test_a_learning_rate_schedule_does_not_recompile_the_step():
 @pytest.mark.parametrize("algorithm", [MATD3, pytest.param(MADDPG, marks=pytest.mark.slow)])
 def test_td3s_compiled_step_equals_sb3_eager_one(algorithm, tmp_path):
     # TD3: the actor and the targets every second update (4 steps after one: updates 2 and 4); DDPG: every update
-    def build_td3(compile_update: bool) -> Any:
-        model = algorithm("CTDEPolicy", ENV, seed=0, compile_update=compile_update, **compiled_settings("ctde"))
-        model.learn(SETTINGS["learning_starts"] + 1)
-        return model
-
-    eager, compiled, _ = assert_compiled_equals_eager(build_td3, SETTINGS["batch_size"], logs=("train/critic_loss",))
+    eager, compiled, _ = assert_compiled_equals_eager(
+        partial(build, algorithm=algorithm), SETTINGS["batch_size"], logs=("train/critic_loss",)
+    )
     assert compiled._n_updates == eager._n_updates == 5 and algorithm.compiles_update
     batch = compiled.replay_buffer.sample(SETTINGS["batch_size"])
     before = snapshot(compiled, optimizers=True)

@@ -17,6 +17,7 @@ from sb3_sera.common.device_buffer import DeviceReplayBuffer
 from sb3_sera.common.host_reads import HostReads
 from tests.helpers import (
     COMPILED_GROUP,
+    CTDE_TASK,
     assert_close_state,
     assert_compiled_stays_with_eager,
     assert_gpu_trained_model_loads_on_the_cpu,
@@ -175,7 +176,7 @@ def test_learning_rate_schedules_do_not_recompile_the_step():
 
 @pytest.mark.slow  # its step is traced in CI (tests/common/test_cuda_graphs.py); the code for it cost CI 64 s cold
 def test_the_multi_agent_step_compiles_and_equals_the_eager_one():
-    models = [build(flag, "CTDEPolicy", "sb3_sera/SimpleSpread-v0") for flag in (False, True)]
+    models = [build(flag, "CTDEPolicy", CTDE_TASK) for flag in (False, True)]
     eager_logged, compiled_logged = train_both(models, 2)
     assert_close_state(snapshot(models[0], optimizers=True), snapshot(models[1], optimizers=True))
     assert compiled_logged["train/critic_loss"] == pytest.approx(eager_logged["train/critic_loss"], rel=1e-4)
