@@ -167,7 +167,6 @@ def test_train_then_enjoy_a_zoo_run(tmp_path, sb3_sera):
     with open(tmp_path / "curves.pkl", "rb") as file:
         curves = pickle.load(file)
     assert list(curves["sb3_sera-SimpleSpread-v0"]) == [f"MASAC-{folder}"]
-    # The report reads the zoo's run folders too, bias included
     # The report reads the zoo's run folders and records too (seed and budget from args.yml), bias and diagnostics
     reported = sb3_sera("report", folder, "--out", str(tmp_path / "report"), "--reps", "200")
     assert "## Pendulum-v1, 300 steps" in reported.stdout and "## sb3_sera/SimpleSpread-v0, 200 steps" in reported.stdout
