@@ -35,8 +35,8 @@ pytestmark = COMPILED_GROUP["ctde"]
 
 
 def build(compile_update: Any, algorithm: Any = MASAC, env: str = ENV, **kwargs: Any) -> Any:
-    """A multi-agent model (MASAC on the compiled task unless asked) that collected ``learning_starts`` transitions
-    and made one gradient step (built and run in turn)."""
+    """A multi-agent model (MASAC on the compiled task unless asked) that collected ``learning_starts`` transitions and
+    made one gradient step (built and run in turn); the IET and TD3 tests pass their algorithm and task."""
     model = algorithm("CTDEPolicy", env, seed=0, compile_update=compile_update, **{**compiled_settings("ctde"), **kwargs})
     model.learn(SETTINGS["learning_starts"] + 1)
     return model
