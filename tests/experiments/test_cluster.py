@@ -14,8 +14,8 @@ from sb3_sera.experiments.engine import ATTEMPTS_FILE
 from sb3_sera.experiments.records import load_result
 from tests.helpers import assert_same_end, tiny_grid
 
-#: One pytest-xdist worker runs the file's Ray instances in turn; each test starts its own (``"local"``: a
-#: ``ray.init()`` without an address joins a Ray cluster already running on the machine, and refuses ``num_cpus`` there)
+#: One pytest-xdist worker runs the file's Ray instances in turn; each starts its own (``"local"``: a ``ray.init()``
+#: without an address joins a Ray cluster already running on the machine, and refuses ``num_cpus`` there)
 pytestmark = pytest.mark.xdist_group("ray")
 
 GRID = tiny_grid("ensemble_mean: {algo: serasac, target_aggregation: mean}")
@@ -66,22 +66,39 @@ def test_sharing_gpus_here_needs_gpus(tmp_path, capsys, monkeypatch):
     assert not (tmp_path / "out").exists()
 
 
-def test_grid_on_a_local_ray_instance_with_a_gpu_shared_by_its_runs(tmp_path):
-    ray = ray_or_skip()
-    # A GPU by Ray's accounting alone: the runs are given half of it each, and train where torch finds it (here, the
-    # CPU: torch sees no CUDA device)
-    ray.init("local", num_cpus=2, num_gpus=1, include_dashboard=False, log_to_driver=False)
-    try:
-        address = ray.get_runtime_context().gcs_address
+class TestOneLocalInstance:
+    """Runs on one local Ray instance, started once for the class (it takes seconds) and shut down before the cluster."""
+
+    @pytest.fixture(scope="class")
+    def address(self):
+        ray = ray_or_skip()
+        # Two CPUs, and a GPU by Ray's accounting alone
+        ray.init("local", num_cpus=2, num_gpus=1, include_dashboard=False, log_to_driver=False)
+        try:
+            yield ray.get_runtime_context().gcs_address
+        finally:
+            ray.shutdown()
+
+    def test_a_grid_with_a_gpu_shared_by_its_runs(self, address, tmp_path):
+        # The runs are given half of the GPU each, and train where torch finds it (here, the CPU: torch sees no CUDA
+        # device)
         results = bench.run_grid(write(tmp_path, GRID), str(tmp_path / "out"), ray_address=address, gpus_per_run=0.5)
-    finally:
-        ray.shutdown()
-    assert sorted(result.variant for result in results) == ["ensemble_mean", "serasac"]
-    for variant in ("serasac", "ensemble_mean"):
-        record = json.loads((tmp_path / "out" / variant / "Pendulum-v1_1" / "result.json").read_text())
-        (attempt,) = record["attempts"]
-        assert attempt["ray_resources"] == {"CPU": 1.0, "GPU": 0.5}
-        assert attempt["cuda_visible_devices"] == "0" and record["device"] == "cpu"
+        assert sorted(result.variant for result in results) == ["ensemble_mean", "serasac"]
+        for variant in ("serasac", "ensemble_mean"):
+            record = json.loads((tmp_path / "out" / variant / "Pendulum-v1_1" / "result.json").read_text())
+            (attempt,) = record["attempts"]
+            assert attempt["ray_resources"] == {"CPU": 1.0, "GPU": 0.5}
+            assert attempt["cuda_visible_devices"] == "0" and record["device"] == "cpu"
+
+    def test_a_run_that_fails_for_its_own_reasons_is_not_retried(self, address, tmp_path):
+        # A non-finite loss at the first gradient step, after the first evaluation (the run's folder stays): the
+        # run's own failure, which a retry would only repeat
+        grid = GRID.replace("learning_starts: 50", "learning_starts: 150, target_entropy: .nan")
+        with pytest.raises(RuntimeError, match=r"2 of 2 run\(s\) failed: .*FloatingPointError"):
+            bench.run_grid(write(tmp_path, grid), str(tmp_path / "out"), ray_address=address)
+        for variant in ("serasac", "ensemble_mean"):
+            (attempt,) = json.loads((tmp_path / "out" / variant / "Pendulum-v1_1" / ATTEMPTS_FILE).read_text())
+            assert "ray_node" in attempt
 
 
 def _lose_the_node_of_a_run(cluster, out, lost: dict, deadline: float) -> None:
@@ -137,20 +154,3 @@ def test_a_lost_ray_node_costs_nothing(tmp_path):
     for variant in ("serasac", "ensemble_mean"):
         folder = f"{variant}/Pendulum-v1_1"
         assert_same_end(straight / folder, out / folder, "Pendulum-v1.zip")
-
-
-def test_a_run_that_fails_for_its_own_reasons_is_not_retried_on_ray(tmp_path, monkeypatch):
-    ray = ray_or_skip()
-    # A non-finite loss at the first gradient step, after the first evaluation (the run's folder stays): the run's
-    # own failure, which a retry would only repeat
-    grid = GRID.replace("learning_starts: 50", "learning_starts: 150, target_entropy: .nan")
-    ray.init("local", num_cpus=2, include_dashboard=False, log_to_driver=False)
-    try:
-        address = ray.get_runtime_context().gcs_address
-        with pytest.raises(RuntimeError, match=r"2 of 2 run\(s\) failed: .*FloatingPointError"):
-            bench.run_grid(write(tmp_path, grid), str(tmp_path / "out"), ray_address=address)
-    finally:
-        ray.shutdown()
-    for variant in ("serasac", "ensemble_mean"):
-        (attempt,) = json.loads((tmp_path / "out" / variant / "Pendulum-v1_1" / ATTEMPTS_FILE).read_text())
-        assert "ray_node" in attempt
