@@ -51,3 +51,23 @@ def sb3_sera() -> Callable[..., subprocess.CompletedProcess]:
         return completed
 
     return run
+
+
+@pytest.fixture
+def sb3_sera_here(capsys: pytest.CaptureFixture[str]) -> Callable[..., str]:
+    """
+    ``sb3_sera_here(*args)`` runs ``sb3-sera ARGS`` in this process, as ``main`` of the command line (no interpreter to
+    start: seconds each), and returns what it printed; it fails the test unless the command succeeds. The commands
+    whose process matters (Ctrl-C, an installed wheel, ``python -m``) run in their own, with :func:`sb3_sera`.
+    """
+    from sb3_sera.experiments.cli import main
+
+    def run(*args: str) -> str:
+        capsys.readouterr()
+        try:
+            main(list(args))
+        except SystemExit as stop:
+            assert stop.code in (None, 0), stop.code
+        return capsys.readouterr().out
+
+    return run

@@ -136,11 +136,11 @@ def test_serasac_sampler_keeps_table_4_critics():
     assert stored["policy_kwargs"] == params["policy_kwargs"] and stored["sera_alpha"] == params["sera_alpha"]
 
 
-def test_train_then_enjoy_a_zoo_run(tmp_path, sb3_sera):
+def test_train_then_enjoy_a_zoo_run(tmp_path, sb3_sera_here):
     folder = str(tmp_path)
     evaluate = ["--eval-freq", "100", "--eval-episodes", "2"]
-    sb3_sera("train", "--algo", "serasac", "--env", "Pendulum-v1", "-n", "300", "-f", folder, "--seed", "0", *evaluate)
-    sb3_sera(
+    sb3_sera_here("train", "--algo", "serasac", "--env", "Pendulum-v1", "-n", "300", "-f", folder, "--seed", "0", *evaluate)
+    sb3_sera_here(
         "train", "--algo", "masac", "--env", "sb3_sera/SimpleSpread-v0", "-n", "200", "-f", folder, "--seed", "0", *evaluate,
         "-params", "learning_starts:50",
     )  # fmt: skip
@@ -148,8 +148,8 @@ def test_train_then_enjoy_a_zoo_run(tmp_path, sb3_sera):
     assert (run / "Pendulum-v1.zip").exists() and (run / "0.monitor.csv").exists()
     # The zoo saved the hyperparameters it read from this repository's file
     assert "critic_lr_max" in (run / "Pendulum-v1" / "config.yml").read_text()
-    enjoyed = sb3_sera("enjoy", "--algo", "serasac", "--env", "Pendulum-v1", "-f", folder, "--exp-id", "1", "-n", "200")
-    assert "Mean reward" in enjoyed.stdout
+    enjoyed = sb3_sera_here("enjoy", "--algo", "serasac", "--env", "Pendulum-v1", "-f", folder, "--exp-id", "1", "-n", "200")
+    assert "Mean reward" in enjoyed
     assert (tmp_path / "masac" / "sb3_sera-SimpleSpread-v0_1" / "sb3_sera-SimpleSpread-v0.zip").exists()
     # The zoo's evaluations recorded the initial-state bias: three evaluations of two episodes
     bias = np.load(run / "initial_state_bias.npz")
@@ -168,8 +168,8 @@ def test_train_then_enjoy_a_zoo_run(tmp_path, sb3_sera):
         curves = pickle.load(file)
     assert list(curves["sb3_sera-SimpleSpread-v0"]) == [f"MASAC-{folder}"]
     # The report reads the zoo's run folders and records too (seed and budget from args.yml), bias and diagnostics
-    reported = sb3_sera("report", folder, "--out", str(tmp_path / "report"), "--reps", "200")
-    assert "## Pendulum-v1, 300 steps" in reported.stdout and "## sb3_sera/SimpleSpread-v0, 200 steps" in reported.stdout
+    reported = sb3_sera_here("report", folder, "--out", str(tmp_path / "report"), "--reps", "200")
+    assert "## Pendulum-v1, 300 steps" in reported and "## sb3_sera/SimpleSpread-v0, 200 steps" in reported
     for figure in ("bias", "diagnostics", "correlations"):
         assert (tmp_path / "report" / f"Pendulum-v1_300_{figure}.png").exists()
 

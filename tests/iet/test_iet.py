@@ -398,10 +398,10 @@ def test_zoo_registration_sampler_and_hyperparameter_file():
         assert model.policy.modular_kwargs == dict(hidden_dim=64, n_layers=2, n_modules=2, n_gating_layers=2)
 
 
-def test_zoo_train_with_evaluations_then_enjoy(tmp_path, sb3_sera):
+def test_zoo_train_with_evaluations_then_enjoy(tmp_path, sb3_sera_here):
     folder = str(tmp_path)
     common = ["--algo", "iet", "--env", CTDE_TASK, "-f", folder, "--num-threads", "1"]
-    sb3_sera(
+    sb3_sera_here(
         "train",
         *common,
         "-n",
@@ -419,7 +419,7 @@ def test_zoo_train_with_evaluations_then_enjoy(tmp_path, sb3_sera):
     assert (run / "sb3_sera-SimpleSpread-v0.zip").exists() and (run / "evaluations.npz").exists()
     # The evaluations (their env given latents by the callback) also valued each episode's first state
     assert np.load(run / "initial_state_bias.npz")["values"].shape == (2, 2)
-    assert "Mean reward" in sb3_sera("enjoy", *common, "--exp-id", "1", "-n", "60", "--no-render").stdout
+    assert "Mean reward" in sb3_sera_here("enjoy", *common, "--exp-id", "1", "-n", "60", "--no-render")
 
 
 # --- Learning ---

@@ -464,15 +464,15 @@ def test_zoo_registration_sampler_and_hyperparameter_file():
         SUNRISE(entry["policy"], ENV_ID, **{**kwargs, "buffer_size": 100})
 
 
-def test_zoo_train_with_evaluations_then_enjoy(tmp_path, sb3_sera):
+def test_zoo_train_with_evaluations_then_enjoy(tmp_path, sb3_sera_here):
     folder = str(tmp_path)
     common = ["--algo", "sunrise", "--env", ENV_ID, "-f", folder, "--num-threads", "1"]
-    sb3_sera("train", *common, "-n", "300", "--seed", "0", "--eval-freq", "100", "--eval-episodes", "1")
+    sb3_sera_here("train", *common, "-n", "300", "--seed", "0", "--eval-freq", "100", "--eval-episodes", "1")
     run = tmp_path / "sunrise" / "Pendulum-v1_1"
     assert (run / "Pendulum-v1.zip").exists() and (run / "evaluations.npz").exists()
     # The evaluations also recorded the ensemble's value of each episode's first state (all 10 critics)
     assert np.load(run / "initial_state_bias.npz")["values"].shape == (3, 1)
-    assert "Mean reward" in sb3_sera("enjoy", *common, "--exp-id", "1", "-n", "200", "--no-render").stdout
+    assert "Mean reward" in sb3_sera_here("enjoy", *common, "--exp-id", "1", "-n", "200", "--no-render")
 
 
 # --- Learning ---
