@@ -123,13 +123,13 @@ def test_a_new_seed_gets_the_next_id(bench_out, tmp_path):
     assert read_record(results / "serasac/Pendulum-v1_1/Pendulum-v1/args.yml")["seed"] == 0
 
 
-def test_report_regenerates_the_results_page_the_readme_headline_and_the_report(bench_out, tmp_path, sb3_sera):
+def test_report_regenerates_the_results_page_the_readme_headline_and_the_report(bench_out, tmp_path, sb3_sera_here):
     results = tmp_path / "results"
     intake.add_runs([bench_out], results)
     docs = tmp_path / "docs"
     readme = tmp_path / "README.md"
     readme.write_text(f"# Title\n\nBefore.\n\n{ledger.BEGIN}\nstale\n{ledger.END}\n\nAfter.\n")
-    sb3_sera("ledger", "report", "--ledger", str(results), "--docs", str(docs), "--readme", str(readme))
+    sb3_sera_here("ledger", "report", "--ledger", str(results), "--docs", str(docs), "--readme", str(readme))
     # No results page yet: one holding only the block, with a title
     page = (docs / ledger.RESULTS_PAGE).read_text()
     assert page.startswith("# Results\n\n") and ledger.current_block(page) == ledger.results_block(results)

@@ -42,7 +42,7 @@ def test_code_is_refused_and_never_runs(tmp_path, text, message):
     assert not marker.exists()
 
 
-def test_params_on_the_command_line_never_execute_code(tmp_path, sb3_sera):
+def test_params_on_the_command_line_never_execute_code(tmp_path):
     marker = tmp_path / "marker"
     spec = specs.make_spec(
         variant="serasac",
