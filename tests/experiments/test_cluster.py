@@ -66,18 +66,19 @@ def test_sharing_gpus_here_needs_gpus(tmp_path, capsys, monkeypatch):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.fixture(scope="class")
+def address():
+    """A local Ray instance's address, for the tests of one class: two CPUs, and a GPU by Ray's accounting alone."""
+    ray = ray_or_skip()
+    ray.init("local", num_cpus=2, num_gpus=1, include_dashboard=False, log_to_driver=False)
+    try:
+        yield ray.get_runtime_context().gcs_address
+    finally:
+        ray.shutdown()
+
+
 class TestOneLocalInstance:
     """Runs on one local Ray instance, started once for the class (it takes seconds) and shut down before the cluster."""
-
-    @pytest.fixture(scope="class")
-    def address(self):
-        ray = ray_or_skip()
-        # Two CPUs, and a GPU by Ray's accounting alone
-        ray.init("local", num_cpus=2, num_gpus=1, include_dashboard=False, log_to_driver=False)
-        try:
-            yield ray.get_runtime_context().gcs_address
-        finally:
-            ray.shutdown()
 
     def test_a_grid_with_a_gpu_shared_by_its_runs(self, address, tmp_path):
         # The runs are given half of the GPU each, and train where torch finds it (here, the CPU: torch sees no CUDA
