@@ -26,7 +26,7 @@ from tqdm import tqdm
 from sb3_sera.experiments.checkpoint import checkpoint_step, has_checkpoint
 from sb3_sera.experiments.engine import PROGRESS_FILE, steps_done, train_one
 from sb3_sera.experiments.folders import assign_folders, output_lock
-from sb3_sera.experiments.records import RESULT_FILE, RunResult, env_name
+from sb3_sera.experiments.records import RESULT_FILE, RunResult, env_name, load_result
 from sb3_sera.experiments.specs import RunSpec
 
 
@@ -131,13 +131,14 @@ def execute(
 ) -> list[RunResult]:
     """
     Run every spec in its folder (:func:`.assign_folders`): on a local process pool of ``n_jobs`` workers (default:
-    one per core), or as Ray tasks of one CPU each on the cluster at ``ray_address`` (``"auto"``: the one
-    ``ray start`` made on this machine). A Ray task whose worker or node is lost is started again elsewhere
-    (:data:`RAY_RETRIES` times at most) and resumes from its run's last checkpoint in the shared output folder; one
-    that fails for its own reasons is not. Finished runs are read back, not run again. A failed run does not stop
-    the others: once all have ended, each failed run's traceback is printed to stderr and ``RuntimeError`` names
-    the failed ones with their errors. A failed run that had not evaluated
-    yet leaves no folder behind; one that had keeps its logs, without the ``result.json`` of a finished run.
+    one per core, and no more than the runs left to make), or as Ray tasks of one CPU each on the cluster at
+    ``ray_address`` (``"auto"``: the one ``ray start`` made on this machine). A Ray task whose worker or node is lost
+    is started again elsewhere (:data:`RAY_RETRIES` times at most) and resumes from its run's last checkpoint in the
+    shared output folder; one that fails for its own reasons is not. Finished runs are read back here, not run again
+    (no worker or task is started for them). A failed run does not stop the others: once all have ended, each failed
+    run's traceback is printed to stderr and ``RuntimeError`` names the failed ones with their errors. A failed run
+    that had not evaluated yet leaves no folder behind; one that had keeps its logs, without the ``result.json`` of a
+    finished run.
     ``out_dir`` is locked while the runs are made (:func:`.output_lock`). One Ctrl-C (or SIGTERM) stops every
     worker and raises :class:`Interrupted` naming the unfinished runs, which the same command resumes.
 
@@ -160,10 +161,13 @@ def execute(
         n_jobs = n_jobs or len(slots)
     with output_lock(out_dir):
         folders = assign_folders(specs, out_dir, accept_older=accept_older)
-        if ray_address is not None:
-            outcomes = _execute_on_ray(specs, folders, ray_address, progress_bar, gpus_per_run or 0)
+        finished = read_back_finished(folders)
+        if len(finished) == len(specs):
+            outcomes = [finished[index] for index in range(len(specs))]
+        elif ray_address is not None:
+            outcomes = _execute_on_ray(specs, folders, finished, ray_address, progress_bar, gpus_per_run or 0)
         else:
-            outcomes = _execute_locally(specs, folders=folders, n_jobs=n_jobs, progress_bar=progress_bar, slots=slots)
+            outcomes = _execute_locally(specs, folders, finished, n_jobs=n_jobs, progress_bar=progress_bar, slots=slots)
     failed = []
     for spec, folder, outcome in zip(specs, folders, outcomes, strict=True):
         if isinstance(outcome, BaseException):
@@ -252,15 +256,33 @@ def steps_before(specs: Sequence[RunSpec], folders: Sequence[Path]) -> list[int]
     return done
 
 
+def read_back_finished(folders: Sequence[Path]) -> dict[int, RunResult | BaseException]:
+    """
+    The finished runs among ``folders`` (those with a ``result.json``), read back here, by their index: no worker is
+    started for a run that has nothing left to do. A record that cannot be read is the run's outcome, as a worker's
+    error is.
+    """
+    outcomes: dict[int, RunResult | BaseException] = {}
+    for index, folder in enumerate(folders):
+        if (folder / RESULT_FILE).exists():
+            try:
+                outcomes[index] = load_result(folder)
+            except Exception as error:  # reported with the failed runs, as from a worker
+                outcomes[index] = error
+    return outcomes
+
+
 def _execute_locally(
     specs: Sequence[RunSpec],
     folders: Sequence[Path],
+    finished: dict[int, RunResult | BaseException],
     n_jobs: int | None,
     progress_bar: bool,
     slots: Sequence[str] | None = None,
 ) -> list[RunResult | BaseException]:
-    n_jobs = min(n_jobs or os.cpu_count() or 1, len(specs))
-    outcomes: dict[int, RunResult | BaseException] = {}
+    outcomes = dict(finished)
+    to_run = [index for index in range(len(specs)) if index not in finished]
+    n_jobs = min(n_jobs or os.cpu_count() or 1, len(to_run))
     context = get_context("spawn")
     queue = None
     if slots is not None:
@@ -281,10 +303,7 @@ def _execute_locally(
             total=total, initial=sum(before), desc=f"{len(specs)} runs", unit="step", disable=not progress_bar, file=bar_output
         )
         with bar:
-            futures = {
-                pool.submit(train_one, spec, folder): index
-                for index, (spec, folder) in enumerate(zip(specs, folders, strict=True))
-            }
+            futures = {pool.submit(train_one, specs[index], folders[index]): index for index in to_run}
             pending = set(futures)
             while pending:
                 done, pending = wait(pending, timeout=2.0, return_when=FIRST_COMPLETED)
@@ -319,12 +338,18 @@ def _execute_locally(
 
 
 def _execute_on_ray(
-    specs: Sequence[RunSpec], folders: Sequence[Path], address: str, progress_bar: bool, gpus_per_run: float
+    specs: Sequence[RunSpec],
+    folders: Sequence[Path],
+    finished: dict[int, RunResult | BaseException],
+    address: str,
+    progress_bar: bool,
+    gpus_per_run: float,
 ) -> list[RunResult | BaseException]:
     try:
         import ray
     except ImportError as error:
         raise ImportError("--ray-address needs Ray: pip install 'sb3-sera[distributed]'") from error
+    outcomes = dict(finished)
     ray.init(address=address, ignore_reinit_error=True, log_to_driver=False)
     # Ray gives a task with GPUs its own (CUDA_VISIBLE_DEVICES), where the run's device (auto or cuda) finds them
     remote_train: Any = ray.remote(num_cpus=1, num_gpus=gpus_per_run, max_retries=RAY_RETRIES, retry_exceptions=False)(
@@ -334,9 +359,9 @@ def _execute_on_ray(
     pending = {
         remote_train.remote(spec, str(folder.resolve())): index
         for index, (spec, folder) in enumerate(zip(specs, folders, strict=True))
+        if index not in finished
     }
-    outcomes: dict[int, RunResult | BaseException] = {}
-    with tqdm(total=len(specs), desc="runs (ray)", disable=not progress_bar) as bar:
+    with tqdm(total=len(specs), initial=len(finished), desc="runs (ray)", disable=not progress_bar) as bar:
         while pending:
             done, _ = ray.wait(list(pending), num_returns=1)
             for ref in done:

@@ -2,10 +2,11 @@
 
 import json
 import shutil
+from concurrent.futures import ProcessPoolExecutor
 
 import pytest
 
-from sb3_sera.experiments import bench
+from sb3_sera.experiments import backends, bench
 from sb3_sera.experiments.cli import main
 from sb3_sera.experiments.report import PAPER_NAMES, PAPER_RESULTS
 from tests.helpers import ROOT, tiny_grid
@@ -89,8 +90,16 @@ def test_paper_table_grids_run_every_column_on_every_task(table):
     assert tasks == {task for task in PAPER_RESULTS if task.startswith("sb3_sera/") == (table == "paper_table1")}
 
 
-def test_grid_runs_and_resumes(tmp_path, capsys):
+def test_grid_runs_and_resumes(tmp_path, capsys, monkeypatch):
     path, out = write(tmp_path, GRID), tmp_path / "out"
+    # The workers each command starts: one a run to make, none for a run read back
+    pools = []
+
+    def pool(**kwargs):
+        pools.append(kwargs["max_workers"])
+        return ProcessPoolExecutor(**kwargs)
+
+    monkeypatch.setattr(backends, "ProcessPoolExecutor", pool)
     main(["bench", str(path), "--out", str(out), "--n-jobs", "2", "--reps", "200"])
     assert "| ensemble_mean | 1 |" in capsys.readouterr().out
     assert "ensemble_mean" in (out / "reports" / "grid_1" / "report.md").read_text()
@@ -133,6 +142,7 @@ def test_grid_runs_and_resumes(tmp_path, capsys):
     (accepted,) = json.loads((kept.parent / "accepted.json").read_text())
     assert accepted["reason"] == "a docstring edit" and accepted["code_then"]["run_code_digest"].startswith("0")
     assert not (out / "serasac" / "Pendulum-v1_2").exists()
+    assert pools == [2, 1, 2]
 
 
 def test_a_variant_on_a_task_of_the_other_kind_is_refused_before_any_run(tmp_path):
