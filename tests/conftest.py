@@ -67,7 +67,7 @@ def sb3_sera_here(capsys: pytest.CaptureFixture[str]) -> Callable[..., str]:
         try:
             main(list(args))
         except SystemExit as stop:
-            assert stop.code in (None, 0), stop.code
+            assert stop.code in (None, 0), f"{stop.code}: {capsys.readouterr().err[-3000:]}"
         return capsys.readouterr().out
 
     return run
