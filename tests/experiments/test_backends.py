@@ -6,10 +6,12 @@ import signal
 import subprocess
 import sys
 import time
+import types
 from pathlib import Path
 
 import pytest
 
+from sb3_sera.experiments import backends
 from sb3_sera.experiments.backends import steps_before
 from sb3_sera.experiments.checkpoint import CHECKPOINT_DIR, STEP_FILE
 from sb3_sera.experiments.engine import PROGRESS_FILE
@@ -145,3 +147,28 @@ def test_the_progress_bar_starts_at_the_steps_made_before(tmp_path):
     (resumed / PROGRESS_FILE).write_text("650")  # counted past the checkpoint before the interruption
     assert steps_before(specs, folders) == [1000, 400, 0]
     assert not (resumed / PROGRESS_FILE).exists()
+
+
+def test_on_ray_a_task_starts_only_for_a_run_left_to_make(tmp_path, monkeypatch):
+    # A stand-in for Ray that trains nothing: it records the runs it is given, and each task returns its run's seed
+    given = []
+
+    def remote(**options):
+        def wrap(function):
+            def submit(spec, folder):
+                given.append((spec.seed, folder))
+                return spec.seed
+
+            return types.SimpleNamespace(remote=submit)
+
+        return wrap
+
+    ray = types.SimpleNamespace(
+        init=lambda **kwargs: None, remote=remote, wait=lambda refs, num_returns: (refs[:1], refs[1:]), get=lambda ref: ref
+    )
+    monkeypatch.setitem(sys.modules, "ray", ray)
+    specs = [make_spec("sac", "sac", "Pendulum-v1", seed, n_timesteps=1000, eval_freq=500) for seed in range(3)]
+    folders = [tmp_path / str(seed) for seed in range(3)]
+    outcomes = backends._execute_on_ray(specs, folders, {1: "read back"}, "address", False, 0)
+    assert outcomes == [0, "read back", 2]
+    assert given == [(0, str(folders[0].resolve())), (2, str(folders[2].resolve()))]
