@@ -1,5 +1,5 @@
-"""`compare`/`bench` as processes: one Ctrl-C stops every worker, a killed command takes its workers with it, and
-two commands never train into one output folder."""
+"""`compare`/`bench` as processes: one Ctrl-C stops every worker, a killed command takes its workers with it, two
+commands never train into one output folder, and only a run left to make is given a worker or a Ray task."""
 
 import os
 import signal
