@@ -49,7 +49,7 @@ SMALL_NETWORKS = {
 @pytest.mark.parametrize(("algo", "env_id"), [("serasac", "Pendulum-v1"), ("masac", CTDE_TASK), ("iet", CTDE_TASK)])
 def test_an_interrupted_run_resumes_to_the_same_final_parameters(tmp_path, monkeypatch, algo, env_id):
     overrides = {"learning_starts": 100, "batch_size": 32, "buffer_size": 2000, "policy_kwargs": SMALL_NETWORKS[algo]}
-    spec = make_spec(algo, algo, env_id, seed=0, n_timesteps=600, overrides=overrides, eval_freq=150, n_eval_episodes=1)
+    spec = make_spec(algo, algo, env_id, seed=0, n_timesteps=400, overrides=overrides, eval_freq=150, n_eval_episodes=1)
     spec.device = "cpu"
     # Uninterrupted, without checkpoints
     whole = copy.deepcopy(spec)
@@ -59,7 +59,7 @@ def test_an_interrupted_run_resumes_to_the_same_final_parameters(tmp_path, monke
     # Checkpoints every 100 steps, a kill at a random step between two of them, then the same run again
     spec.checkpoint_freq = 100
     (resumed,) = assign_folders([spec], tmp_path / "resumed")
-    _Stop.at = int(np.random.default_rng().integers(230, 470))
+    _Stop.at = int(np.random.default_rng().integers(230, 370))
     with monkeypatch.context() as patch:
         patch.setattr(engine, "ProgressFile", _Stop)
         with pytest.raises(KeyboardInterrupt):
