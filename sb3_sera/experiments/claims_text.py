@@ -69,9 +69,10 @@ def declared_rule_lines(results: Sequence[ClaimResult]) -> list[str]:
     if not tested:
         return []
     lines = [
-        "Under the rule `results/claims.yml` first declared, which the rule above replaced after every run of those "
-        "claims had been seen (the raw-difference permutation test, Holm within a primary family, exploratory claims "
-        f"unadjusted, no test below three runs an arm), {len(tested) - len(differing)} of the {len(tested)} tested "
+        "Under the rule `results/claims.yml` first declared, which the rule above replaced after every run of the "
+        "claims then declared had been seen (the raw-difference permutation test, Holm within a primary family, "
+        "exploratory claims unadjusted, no test below three runs an arm; claims declared since were declared under the "
+        f"rule above, and are read under both too), {len(tested) - len(differing)} of the {len(tested)} tested "
         "claims read the same" + (", and these differently:" if differing else "."),
     ]
     if differing:

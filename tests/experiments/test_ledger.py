@@ -162,16 +162,39 @@ NUMBER = r"[+-]?\d[\d,]*(?:\.\d+)?"
 INTERVAL = re.compile(rf"({NUMBER})\s+\[({NUMBER}),\s+({NUMBER})\]")
 
 
+def _agree(a: str, b: str) -> bool:
+    """Whether ``a`` and ``b`` are roundings of one number: each within half a unit of its last digit of it."""
+    half_units = sum(0.5 * 10.0 ** -len(s.partition(".")[2]) for s in (a, b))
+    return abs(float(a.replace(",", "")) - float(b.replace(",", ""))) < half_units - 1e-9
+
+
 def _unprinted(quoted: str, printed: str) -> list[tuple[str, ...]]:
     """The intervals ``a [b, c]`` of ``quoted`` that no interval of ``printed`` gives at their precision."""
-
-    def agree(a: str, b: str) -> bool:
-        # Roundings of one number: each within half a unit of its last digit of it, so closer than the two halves
-        half_units = sum(0.5 * 10.0 ** -len(s.partition(".")[2]) for s in (a, b))
-        return abs(float(a.replace(",", "")) - float(b.replace(",", ""))) < half_units - 1e-9
-
     intervals = INTERVAL.findall(printed)
-    return [q for q in INTERVAL.findall(quoted) if not any(all(map(agree, q, p)) for p in intervals)]
+    return [q for q in INTERVAL.findall(quoted) if not any(all(map(_agree, q, p)) for p in intervals)]
+
+
+#: A quoted q-value: ``q 0.0305`` or ``BH q 0.13`` (Benjamini-Hochberg), ``BY q 0.1373`` (Benjamini-Yekutieli)
+QVALUE = re.compile(r"\b(BY )?q (\d\.\d+)")
+
+
+def _unprinted_q_values(quoted: str, printed: str) -> list[str]:
+    """The q-values of ``quoted`` that no cell of the claims tables' BH or BY column of ``printed`` gives."""
+    columns: dict[str, list[str]] = {"BH q": [], "BY q": []}
+    header: list[str] = []
+    for line in printed.splitlines():
+        cells = [cell.strip() for cell in line.strip().strip("|").split("|")]
+        if line.startswith("| claim |"):
+            header = cells
+        elif line.startswith("| ") and len(cells) == len(header):
+            for name, values in columns.items():
+                if name in header:
+                    values.append(cells[header.index(name)])
+    return [
+        f"{by or ''}q {value}"
+        for by, value in QVALUE.findall(quoted)
+        if not any(_agree(value, cell) for cell in columns["BY q" if by else "BH q"] if re.fullmatch(r"\d\.\d+", cell))
+    ]
 
 
 def _section(text: str, start: str) -> str:
@@ -184,9 +207,12 @@ def test_unprinted_finds_a_figure_the_ledger_does_not_give():
     printed = "| 965 [80.9, 1848] | 1,101 [707, 1496] |"
     assert _unprinted("by +965 [81,\n  1848] and 1101 [707, 1496]", printed) == []
     assert _unprinted("by 965 [82, 1848], 1101 [707, 1497]", printed) == [("965", "82", "1848"), ("1101", "707", "1497")]
+    table = "| claim | n | BH q | BY q | verdict |\n|---|---|---|---|---|\n| a: SERA higher | 5 vs 5 | 0.0305 | 0.1373 | x |"
+    assert _unprinted_q_values("(q 0.0305, BY q 0.1373; BH q 0.03, BY q 0.14)", table) == []
+    assert _unprinted_q_values("(q 0.1373, BY q 0.0305, q 0.0306)", table) == ["q 0.1373", "BY q 0.0305", "q 0.0306"]
 
 
-def test_the_readings_quote_only_intervals_the_ledger_prints():
+def test_the_readings_quote_only_intervals_and_q_values_the_ledger_prints():
     # The hand-written readings under the README's results block and on the results page ("What the ledger says")
     # quote differences with their intervals: each must be one the ledger gives today (a claim of any family, or a
     # claim on the runs added after its declaration), at the precision quoted. The results page's generated block
@@ -202,6 +228,11 @@ def test_the_readings_quote_only_intervals_the_ledger_prints():
     assert INTERVAL.search(readme) and INTERVAL.search(page)
     assert _unprinted(readme, printed) == []
     assert _unprinted(page, printed) == []
+    # Their q-values too, each one of the exploratory claims' today (the revision notes above the readings quote the
+    # values they replaced)
+    readings = page[page.index("\n- ") :]
+    assert QVALUE.search(readings) and _unprinted_q_values(readings, printed) == []
+    assert _unprinted_q_values(readme, printed) == []
 
 
 def test_add_is_all_or_nothing_and_names_each_refusal(bench_out, tmp_path, monkeypatch):
