@@ -45,6 +45,11 @@ _COMPILED_SETTINGS: dict[str, dict[str, Any]] = {
 COMPILED_GROUP = {name: pytest.mark.xdist_group(f"compiled-{name}") for name in _COMPILED_SETTINGS}
 
 
+def table_cells(line: str) -> list[str]:
+    """The cells of one row of a Markdown table, stripped."""
+    return [cell.strip() for cell in line.strip().strip("|").split("|")]
+
+
 def compiled_settings(name: str) -> dict[str, Any]:
     """
     The keyword arguments of a compiled test model of family ``name`` (``"serasac"``, ``"sunrise"``, or ``"ctde"``:

@@ -14,7 +14,7 @@ from sb3_sera.experiments.claims_text import claims_section
 from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sb3_sera.experiments.records import read_record
 from sb3_sera.experiments.report import group_runs, load_runs
-from tests.helpers import ROOT, tiny_grid
+from tests.helpers import ROOT, table_cells, tiny_grid
 
 GRID = tiny_grid("sac: {}")
 
@@ -183,7 +183,7 @@ def _unprinted_q_values(quoted: str, printed: str) -> list[str]:
     columns: dict[str, list[str]] = {"BH q": [], "BY q": []}
     header: list[str] = []
     for line in printed.splitlines():
-        cells = [cell.strip() for cell in line.strip().strip("|").split("|")]
+        cells = table_cells(line)
         if line.startswith("| claim |"):
             header = cells
         elif line.startswith("| ") and len(cells) == len(header):

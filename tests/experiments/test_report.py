@@ -15,6 +15,7 @@ from sb3_sera.experiments.records import RunResult
 from sb3_sera.experiments.report import aligned, group_runs, load_runs, report_roots, write_report
 from sb3_sera.experiments.report.groups import RunGroup
 from sb3_sera.experiments.report.tables import resumed_lines
+from tests.helpers import table_cells
 
 TASK = "sb3_sera/HalfCheetah-6x1-v0"
 REPS = 400
@@ -69,7 +70,7 @@ def fake_run(
 
 def table_row(report: str, label: str) -> list[str]:
     line = next(line for line in report.splitlines() if line.startswith(f"| {label} |"))
-    return [cell.strip() for cell in line.strip("|").split("|")]
+    return table_cells(line)
 
 
 def test_runs_of_other_budgets_or_settings_are_never_averaged(tmp_path):

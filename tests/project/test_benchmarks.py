@@ -9,7 +9,7 @@ import pytest
 import torch as th
 import yaml
 
-from tests.helpers import COMPILED_GROUP, ROOT, compiled_settings
+from tests.helpers import COMPILED_GROUP, ROOT, compiled_settings, table_cells
 
 BENCHMARKS = ROOT / "benchmarks"
 TINY_TIMING = ["--blocks", "1", "--block-steps", "2", "--threads", "1"]
@@ -140,7 +140,7 @@ def test_param_hashes_of_a_ledger_at_its_commits(tmp_path):
     )
     assert result.returncode == 0, result.stderr[-2000:]
     row = next(line for line in result.stdout.splitlines() if line.startswith("| serasac Pendulum-v1 "))
-    working_tree, at_commit = (cell.strip() for cell in row.strip("|").split("|")[1:])
+    working_tree, at_commit = table_cells(row)[1:]
     # Hashed in the working tree and at the commit that ran it (marked *); the table keeps the commits' columns
     assert at_commit.endswith(" *") and len(working_tree) == 16
     hashes = yaml.safe_load(table.read_text())["hashes"]
