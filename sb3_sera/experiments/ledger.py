@@ -60,10 +60,18 @@ def study_runs(env_id: str, n_timesteps: int, variants: Sequence[str], ledger: s
     return [run for run in runs if run.env_id == env_id and run.n_timesteps == n_timesteps and run.variant in variants]
 
 
-def study_claims(env_id: str, n_timesteps: int, ledger: str | Path | None = None) -> list[Claim] | None:
-    """The claims the ledger declares about one task and budget (None where it declares none: see :func:`ledger_claims`)."""
-    claims = ledger_claims(find_ledger() if ledger is None else ledger)
-    return None if claims is None else [c for c in claims if (c.task, c.n_timesteps) == (env_id, n_timesteps)]
+def study_claims(env_id: str, n_timesteps: int, ledger: str | Path | None = None) -> list[ClaimResult] | None:
+    """
+    The ledger's claims about one task and budget, decided as its pages decide them: on every run they show, each
+    claim adjusted with all the ledger declares (its Holm family, every exploratory claim), so that a task's verdicts
+    and q-values are the results page's (None where the ledger declares no claims: see :func:`ledger_claims`).
+    """
+    folder = find_ledger() if ledger is None else ledger
+    if ledger_claims(folder) is None:
+        return None
+    runs, _, _ = published_runs(folder)
+    decided = _decided(folder, group_runs(runs))
+    return [result for result in decided if (result.claim.task, result.claim.n_timesteps) == (env_id, n_timesteps)]
 
 
 def published_runs(ledger: str | Path = LEDGER_DIR) -> tuple[list[RunResult], list[Skipped], list[str]]:

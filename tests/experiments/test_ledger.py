@@ -203,6 +203,19 @@ def _section(text: str, start: str) -> str:
     return rest.split("\n## ")[0]
 
 
+def test_a_tasks_claims_are_decided_as_the_results_page_decides_them():
+    # The notebooks show a task's claims from ledger.study_claims: every row must be the ledger's report's, each claim
+    # adjusted with all the ledger's claims; adjusted with its task's claims alone, the q-values differ
+    results = ledger.study_claims("HalfCheetah-v5", 50_000, ROOT / "results")
+    assert results and {result.claim.task for result in results} == {"HalfCheetah-v5"}
+    report = (ROOT / ledger.DOCS_DIR / "report.md").read_text()
+    rows = [line for line in claims_section(results) if line.startswith("| ") and ": SERA" in line]
+    assert len(rows) == len(results) and all(row in report for row in rows)
+    runs, _, _ = ledger.published_runs(ROOT / "results")
+    alone = evaluate([result.claim for result in results], group_runs(runs))
+    assert [a.adjusted_p for a in alone] != [result.adjusted_p for result in results]
+
+
 def test_unprinted_finds_a_figure_the_ledger_does_not_give():
     printed = "| 965 [80.9, 1848] | 1,101 [707, 1496] |"
     assert _unprinted("by +965 [81,\n  1848] and 1101 [707, 1496]", printed) == []

@@ -37,6 +37,7 @@ def write_report(
     log: Callable[[str], None] | None = None,
     claims: Sequence[Claim] | None = None,
     code_hashes: dict[str, dict[str, str]] | None = None,
+    claim_results: Sequence[ClaimResult] | None = None,
 ) -> Path:
     """
     Write ``report.md`` and its figures into the folder ``out`` (see the module's docstring).
@@ -51,6 +52,8 @@ def write_report(
         each section's :func:`~sb3_sera.experiments.claims.default_claims`, all exploratory
     :param code_hashes: a ledger's code hashes per commit (:mod:`~sb3_sera.experiments.identity`): each section says
         whether its groups' runs from several commits train the same
+    :param claim_results: claims decided elsewhere, shown as they are in place of deciding ``claims`` on ``runs``
+        (:func:`~sb3_sera.experiments.ledger.study_claims`: a task's claims adjusted with all of a ledger's)
     :return: the path of ``report.md``
     """
     if not runs:
@@ -65,7 +68,11 @@ def write_report(
     lines = ["# Results", ""]
     if sources:
         lines += [f"Runs read from: {', '.join(sources)}.", ""]
-    decided = evaluate(claims if claims is not None else default_claims(all_groups), all_groups)
+    decided = (
+        list(claim_results)
+        if claim_results is not None
+        else evaluate(claims if claims is not None else default_claims(all_groups), all_groups)
+    )
     sizes = family_sizes(decided)
     if sizes:
         lines += ["## Primary claims", "", *claims_section([r for r in decided if r.claim.primary], sizes), ""]
