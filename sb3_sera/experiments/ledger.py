@@ -67,10 +67,11 @@ def study_claims(env_id: str, n_timesteps: int, ledger: str | Path | None = None
     and q-values are the results page's (None where the ledger declares no claims: see :func:`ledger_claims`).
     """
     folder = find_ledger() if ledger is None else ledger
-    if ledger_claims(folder) is None:
+    claims = ledger_claims(folder)
+    if claims is None:
         return None
     runs, _, _ = published_runs(folder)
-    decided = _decided(folder, group_runs(runs))
+    decided = evaluate(claims, group_runs(runs))
     return [result for result in decided if (result.claim.task, result.claim.n_timesteps) == (env_id, n_timesteps)]
 
 
