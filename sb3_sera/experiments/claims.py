@@ -8,7 +8,8 @@ are compared; the size is the difference of means with its 95% Welch t-interval;
 studentized permutation p and Welch's p (:func:`~sb3_sera.experiments.stats.decision_p_value`), so that no verdict
 points where its interval does not. The primary claims' p-values are Holm-adjusted within their family (a declared
 primary claim not yet tested counts with p = 1), the exploratory claims' turned into Benjamini-Hochberg q-values over
-all of them (untested ones count with p = 1). Verdicts at :data:`ALPHA`, read from the adjusted p: *supported* when it
+their exploratory family (all of them, but for claims declared in a family of their own; untested ones count with
+p = 1). Verdicts at :data:`ALPHA`, read from the adjusted p: *supported* when it
 is below alpha and the difference lies on the claimed side, *contradicted* when below it on the other side,
 *inconclusive* otherwise; *too few runs to decide* where the arms' sizes cannot give a p below the claim's threshold
 (alpha over the family's size for a primary claim, Holm's first; alpha for an exploratory one), and *interim* while a
@@ -42,6 +43,8 @@ SERA = "serasac"
 ALPHA = 0.05
 #: The family of a primary claim that names none
 PRIMARY_FAMILY = "paper"
+#: The family of an exploratory claim that names none (the claims declared before exploratory families existed)
+EXPLORATORY_FAMILY = "exploratory"
 
 
 #: The claim fields of a claims file, and which must be given
@@ -80,12 +83,17 @@ class Claim:
     source: str = ""
     #: The first and last seed (both included) whose runs the claim reads; None: every seed
     seeds: tuple[int, int] | None = None
-    #: The Holm family of a primary claim (each family adjusted on its own)
-    family: str = PRIMARY_FAMILY
+    #: The claim's family, each adjusted on its own: Holm for a primary claim, Benjamini-Hochberg for an exploratory one
+    #: (empty: :data:`PRIMARY_FAMILY` or :data:`EXPLORATORY_FAMILY`)
+    family: str = ""
     #: Runs an arm the claim plans; with fewer it is interim and not decided (0: decided from MIN_RUNS on)
     planned: int = 0
     #: Shared settings the arms may differ in (systems compared each at its own settings)
     studies: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        if not self.family:
+            object.__setattr__(self, "family", PRIMARY_FAMILY if self.primary else EXPLORATORY_FAMILY)
 
     def reads(self, run: RunResult) -> bool:
         """Whether the claim reads ``run`` (its seed within :attr:`seeds`)."""
@@ -141,8 +149,12 @@ def load_claims(path: str | Path) -> list[Claim]:
         if not isinstance(studies, list) or sorted(set(studies) - set(SHARED_SETTINGS)):
             allowed = list(SHARED_SETTINGS)
             raise ValueError(f"{where}: studies {studies!r} is not a list of shared settings; allowed: {allowed}")
-        if "family" in entry and not entry.get("primary", False):
-            raise ValueError(f"{where}: a family is for primary claims (primary: true); exploratory claims have none")
+        primary = entry.get("primary", False)
+        if not isinstance(primary, bool):
+            raise ValueError(f"{where}: primary {primary!r} is not true or false")
+        family = entry.get("family", PRIMARY_FAMILY if primary else EXPLORATORY_FAMILY)
+        if not isinstance(family, str) or not family:
+            raise ValueError(f"{where}: family {family!r} is not a name")
         if entry["id"] in seen:
             raise ValueError(f"{where}: the id is declared twice")
         seen.add(entry["id"])
@@ -155,10 +167,10 @@ def load_claims(path: str | Path) -> list[Claim]:
                 arm=str(entry["arm"]),
                 baseline=str(entry["baseline"]),
                 direction=str(entry["direction"]),
-                primary=bool(entry.get("primary", False)),
+                primary=primary,
                 source=str(entry.get("source", "")),
                 seeds=(seeds[0], seeds[1]) if seeds is not None else None,
-                family=str(entry.get("family", PRIMARY_FAMILY)),
+                family=family,
                 planned=planned,
                 studies=tuple(studies),
             )
@@ -335,14 +347,13 @@ def _withhold(results: Sequence[ClaimResult]) -> None:
 
 
 def _adjust(results: Sequence[ClaimResult]) -> None:
-    """Each tested claim's adjusted p: Holm within its primary family, or its q-value over the exploratory claims."""
+    """Each tested claim's adjusted p: Holm within its primary family, or its q-value within its exploratory family."""
     for family in families(results):
         adjusted = stats.holm_adjusted([1.0 if r.p_value is None else r.p_value for r in family])
         for result, p_adjusted in zip(family, adjusted, strict=True):
             if result.p_value is not None:
                 result.adjusted_p = p_adjusted
-    exploratory = [result for result in results if not result.claim.primary]
-    if exploratory:
+    for exploratory in families(results, primary=False):
         p_values = [1.0 if r.p_value is None else r.p_value for r in exploratory]
         q_values = zip(stats.benjamini_hochberg(p_values), stats.benjamini_yekutieli(p_values), strict=True)
         for result, (q, by_q) in zip(exploratory, q_values, strict=True):
@@ -381,10 +392,13 @@ def declared_rule_verdict(result: ClaimResult, p_value: float, alpha: float = AL
     return ("supported" if claimed_side else "contradicted") if p_value < alpha else "inconclusive"
 
 
-def families(results: Sequence[ClaimResult]) -> list[list[ClaimResult]]:
-    """The primary claims' results by Holm family, in the order the families are first declared."""
+def families(results: Sequence[ClaimResult], primary: bool = True) -> list[list[ClaimResult]]:
+    """
+    The primary claims' results by Holm family (``primary=False``: the exploratory claims' by Benjamini-Hochberg
+    family), in the order the families are first declared.
+    """
     grouped: dict[str, list[ClaimResult]] = {}
     for result in results:
-        if result.claim.primary:
+        if result.claim.primary == primary:
             grouped.setdefault(result.claim.family, []).append(result)
     return list(grouped.values())

@@ -106,8 +106,9 @@ def claims_legend(sizes: dict[str, int]) -> str:
         "Welch's two-sided t-test (below 0.05 exactly when the interval excludes 0). Permutation p: the studentized "
         "permutation test, Welch's t statistic over every split of the pooled runs (200,000 random splits where there "
         "are more). A claim is decided on the larger of the two, so that no verdict points where its interval does "
-        "not, adjusted for multiplicity: Holm within a primary family, Benjamini-Hochberg (BH) q-values over all the "
-        "exploratory claims (untested ones count with p = 1); beside them each exploratory claim's Benjamini-Yekutieli "
+        "not, adjusted for multiplicity: Holm within a primary family, Benjamini-Hochberg (BH) q-values within an "
+        "exploratory family (one, 'exploratory', unless the claims file declares others; untested claims count with "
+        "p = 1); beside them each exploratory claim's Benjamini-Yekutieli "
         "(BY) q-value, valid whatever the dependence between claims that share runs, and a verdict that stands on BH "
         "alone is marked so. Units: 'paper' is the measure the paper plots, "
         "'scale-free' our form of it normalised by the returns' or targets' scale. Verdict at alpha "
@@ -124,7 +125,6 @@ def claims_section(results: Sequence[ClaimResult], sizes: dict[str, int] | None 
     The primary claims' tables, one a Holm family, then the exploratory claims' (labelled so), and the legend;
     ``sizes``: each family's number of claims (default: as many as ``results`` hold).
     """
-    exploratory = [r for r in results if not r.claim.primary]
     lines: list[str] = []
     for family in families(results):
         lines += [
@@ -133,9 +133,10 @@ def claims_section(results: Sequence[ClaimResult], sizes: dict[str, int] | None 
             *claims_table(family, True),
             "",
         ]
-    if exploratory:
+    for exploratory in families(results, primary=False):
         lines += [
-            "Exploratory claims (Benjamini-Hochberg q-values over all of them, Benjamini-Yekutieli's beside them):",
+            f"Exploratory claims, family '{exploratory[0].claim.family}' (Benjamini-Hochberg q-values within the "
+            "family, Benjamini-Yekutieli's beside them):",
             "",
             *claims_table(exploratory, False),
             "",

@@ -182,6 +182,14 @@ def test_seeds_families_and_planned_runs(tmp_path):
     assert late.verdict == "inconclusive"
     # As many runs as planned or more: decided as any other claim
     assert planned.p_value is not None and planned.verdict == "inconclusive"
+    # An exploratory family of its own: adjusted alone, and the default family without it
+    alone = claims.Claim("alone", "HalfCheetah-v5", 300, "final_return", "serasac", "sera_nolr", "higher", family="x")
+    late, alone = _decided(tmp_path, [declared[1], alone])[2]
+    assert late.claim.family == "exploratory" and alone.claim.family == "x"
+    assert late.adjusted_p == pytest.approx(late.p_value) and alone.adjusted_p == pytest.approx(alone.p_value)
+    assert "Exploratory claims, family 'x' (Benjamini-Hochberg q-values within the family" in "\n".join(
+        claims_text.claims_section([late, alone])
+    )
     lines = claims_text.claims_section([early, every])
     assert lines[0] == "Primary claims, family 'paper' (Holm-adjusted within the family):"
     assert "Primary claims, family 'b' (Holm-adjusted within the family):" in lines
@@ -221,7 +229,7 @@ def test_the_ledger_declares_its_claims():
     # The claims declared for seeds 0-9 read none of the confirmatory runs; the pooled contrast is exploratory
     later = {"ma-return-ensemble-mean-confirmatory", "ma-return-ensemble-mean-pooled"}
     later |= {"ma-return-iet", "ma-return-mappo"}
-    multiagent = [claim for claim in declared if claim.task == "sb3_sera/HalfCheetah-6x1-v0"]
+    multiagent = [c for c in declared if c.task == "sb3_sera/HalfCheetah-6x1-v0" and c.n_timesteps == 50_000]
     assert {claim.seeds for claim in multiagent if claim.id not in later} == {(0, 9)}
     pooled = next(claim for claim in declared if claim.id == "ma-return-ensemble-mean-pooled")
     assert pooled.seeds == (0, 29) and not pooled.primary
@@ -234,6 +242,23 @@ def test_the_ledger_declares_its_claims():
     # The paper's systems, each at its own settings: only ACE's replay settings differ from SERASAC's
     systems = {claim.baseline: claim.studies for claim in declared if claim.id.endswith(("sunrise", "ace", "iet", "mappo"))}
     assert systems == {"sunrise": (), "ace": ("batch_size", "tau"), "iet": (), "mappo": ()}
+    # The paper's budget: a primary family of two, five runs an arm planned, its exploratory claims in a family of
+    # their own beside the SB3 alternatives', every claim declared before them left in the one family they had
+    budget = [claim for claim in declared if claim.n_timesteps == 300_000]
+    assert [(c.baseline, c.primary, c.planned) for c in budget if c.family == "paper-budget" and c.primary] == [
+        ("masac", True, 5),
+        ("ensemble_mean", True, 5),
+    ]
+    assert len([c for c in budget if not c.primary and c.family == "paper-budget"]) == 6
+    alternatives = {(c.measure, c.baseline): c.studies for c in declared if c.family == "sb3-alternatives"}
+    assert alternatives == {
+        ("final_return", "tqc"): (),
+        ("auc", "tqc"): (),
+        ("final_return", "crossq"): ("learning_starts",),
+        ("auc", "crossq"): ("learning_starts",),
+    }
+    assert {c.family for c in declared if not c.primary} == {"exploratory", "paper-budget", "sb3-alternatives"}
+    assert sum(c.family == "exploratory" for c in declared) == 50
 
 
 @pytest.mark.parametrize(
@@ -286,9 +311,9 @@ def test_the_ledger_declares_its_claims():
                 "arm": "x",
                 "baseline": "y",
                 "direction": "higher",
-                "family": "f",
+                "family": 3,
             },
-            "a family is for primary claims",
+            "family 3 is not a name",
         ),
         (
             {

@@ -14,6 +14,7 @@ import yaml
 
 from sb3_sera import SERASAC
 from sb3_sera.experiments.cli import main
+from sb3_sera.experiments.registry import default_hyperparams
 from sb3_sera.experiments.zoo import (
     HYPERPARAMS_DIR,
     MULTI_AGENT_ALGOS,
@@ -81,6 +82,14 @@ def test_zoo_tables_and_arguments():
     sac = ["--algo", "sac", "--env"]
     assert zoo_argv("train", [*sac, "HalfCheetah-v5"])[-1] == str(HYPERPARAMS_DIR / "sac.yml")
     assert zoo_argv("train", [*sac, "Pendulum-v1"]) == [*sac, "Pendulum-v1"]
+    # So do sb3-contrib's TQC and CrossQ: the zoo's HalfCheetah-v4 settings for v5 (CrossQ's critics 1024 wide)
+    for algo in ("tqc", "crossq"):
+        assert zoo_argv("train", ["--algo", algo, "--env", "HalfCheetah-v5"])[-1] == str(HYPERPARAMS_DIR / f"{algo}.yml")
+    assert default_hyperparams("tqc", "HalfCheetah-v5")[0]["learning_starts"] == 10_000
+    crossq, where = default_hyperparams("crossq", "HalfCheetah-v5")
+    assert where == "hyperparams/crossq.yml:HalfCheetah-v5" and "qf=[1024, 1024]" in crossq["policy_kwargs"]
+    assert (crossq["learning_rate"], crossq["learning_starts"], crossq["policy_delay"]) == (1e-3, 5000, 3)
+    assert default_hyperparams("tqc", "Hopper-v4")[1] == "rl_zoo3/hyperparams/tqc.yml:Hopper-v4"
     with pytest.raises(ValueError, match="Unknown zoo command 'fly'"):
         zoo_argv("fly", [])
 
