@@ -1,23 +1,28 @@
 """
-Gradient steps per second of the paper's baselines and SERASAC against stock SB3, interleaved in one process: on a
-single-agent task SAC, SERASAC, SUNRISE and ACE against SAC; on a multi-agent CTDE task (``sb3_sera/...``) MASAC,
-SERASAC and IET (our adaptation) against MASAC (SB3's SAC with per-agent actors).
+Steps per second of the paper's baselines, SB3's alternatives and SERASAC against stock SB3, interleaved in one
+process: on a single-agent task SAC, SERASAC, SUNRISE, ACE and sb3-contrib's TQC and CrossQ against SAC; on a
+multi-agent CTDE task (``sb3_sera/...``) MASAC, SERASAC and IET (our adaptation) against MASAC (SB3's SAC with
+per-agent actors).
 
 Every model is built with its own defaults on the same task (so each runs at its own default batch size: SAC,
-MASAC, SERASAC, SUNRISE and IET 256, ACE 64, the authors'), its replay buffer filled with ``--learning-starts``
-random transitions, then ``model.train(block)`` is timed in alternating blocks so that machine noise hits all alike.
-Each figure is the median over blocks with the interquartile range; the ratio is the reference's median rate over
-the model's (its wall-time cost per gradient step, in units of the reference's). ``--batch-size`` times every model
-at one batch size.
+MASAC, SERASAC, SUNRISE, IET, TQC and CrossQ 256, ACE 64, the authors'; CrossQ's critics 1024 wide and its actor
+updated every third step, TQC's two critics of 25 quantiles: sb3-contrib's defaults, the settings the ledger runs),
+its replay buffer filled with ``--learning-starts`` random transitions, then ``model.train(block)`` (``--mode
+train``: gradient steps alone) or ``model.learn(block)`` (``--mode learn``: what a user's ``learn()`` costs an env
+step, acting and the env included) is timed in alternating blocks so that machine noise hits all alike. Each figure
+is the median over blocks with the interquartile range; the ratio is the reference's median rate over the model's
+(its wall-time cost per step, in units of the reference's). ``--batch-size`` times every model at one batch size.
 
     python benchmarks/baselines_speed.py --env HalfCheetah-v5 --blocks 10 --block-steps 50
     python benchmarks/baselines_speed.py --env sb3_sera/HalfCheetah-6x1-v0 --blocks 10 --block-steps 50
+    python benchmarks/baselines_speed.py --algos SAC SERASAC TQC CrossQ --mode learn --threads 1   # one core
 """
 
 import argparse
 from collections.abc import Callable
 
 import torch as th
+from sb3_contrib import TQC, CrossQ
 from stable_baselines3 import SAC
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from timing import add_interleave_arguments, interleaved_rates, median_iqr
@@ -32,9 +37,11 @@ ALGORITHMS: dict[str, Callable[..., OffPolicyAlgorithm]] = {
     "SUNRISE": SUNRISE,
     "ACE": ACE,
     "IET": IET,
+    "TQC": TQC,
+    "CrossQ": CrossQ,
 }
 #: The algorithms each kind of task runs by default, the reference first
-SINGLE_AGENT = ["SAC", "SERASAC", "SUNRISE", "ACE"]
+SINGLE_AGENT = ["SAC", "SERASAC", "SUNRISE", "ACE", "TQC", "CrossQ"]
 MULTI_AGENT = ["MASAC", "SERASAC", "IET"]
 
 
@@ -46,6 +53,7 @@ def main() -> None:
         "--algos", nargs="+", choices=list(ALGORITHMS), help=f"default: {SINGLE_AGENT}, or {MULTI_AGENT} on a CTDE task"
     )
     parser.add_argument("--batch-size", type=int, default=None, help="one batch size for all (default: each its own)")
+    parser.add_argument("--mode", choices=["train", "learn"], default="train", help="gradient steps, or learn()'s steps")
     parser.add_argument("--threads", type=int, default=th.get_num_threads(), help="torch threads (default: torch's)")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
@@ -61,9 +69,10 @@ def main() -> None:
         model = ALGORITHMS[name](policy, args.env, seed=args.seed, learning_starts=args.learning_starts)
         model.learn(args.learning_starts)  # fills the buffer; no gradient step before learning_starts
         models[name] = model
-    print(f"{args.env}, {args.threads} torch thread(s), torch {th.__version__}, train() only")
+    what = "train() only" if args.mode == "train" else "learn(): env steps, each with its gradient step"
+    print(f"{args.env}, {args.threads} torch thread(s), torch {th.__version__}, {what}")
     print(f"{'algorithm':<10} {'batch':>6} {'steps/s (median)':>17} {'IQR':>15}  ratio ({reference} rate / rate)")
-    rates = interleaved_rates(models, "train", args.blocks, args.block_steps, args.batch_size, args.warmup_blocks)
+    rates = interleaved_rates(models, args.mode, args.blocks, args.block_steps, args.batch_size, args.warmup_blocks)
     stats = {name: median_iqr(values) for name, values in rates.items()}
     for name, (median, low, high) in stats.items():
         batch = args.batch_size or models[name].batch_size

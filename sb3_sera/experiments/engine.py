@@ -22,6 +22,7 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.noise import NormalActionNoise, OrnsteinUhlenbeckActionNoise
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_sera.common.capabilities import as_the_model_sees
@@ -140,6 +141,21 @@ class ProgressFile(BaseCallback):
         return True
 
 
+class StopAtBudget(BaseCallback):
+    """
+    Ends an on-policy ``learn()`` at the run's budget: SB3's on-policy loop finishes the rollout under way past it
+    (rollouts of 2,048 steps took a 50,000-step MAPPO run to 51,200), where this stops collecting at the budget and
+    trains on no partial rollout. Off-policy runs end at the budget without it (a step, then its gradient step).
+    """
+
+    def __init__(self, budget: int) -> None:
+        super().__init__()
+        self.budget = budget
+
+    def _on_step(self) -> bool:
+        return self.num_timesteps < self.budget
+
+
 #: Where a run under way keeps its resumes until ``result.json`` takes them
 RESUMES_FILE = ".resumes.json"
 #: Where a run under way keeps where each of its starts ran (:func:`placement`) until ``result.json`` takes them
@@ -249,6 +265,8 @@ def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
     callbacks: list[BaseCallback] = [callback, ProgressFile(folder / PROGRESS_FILE)]
     if spec.checkpoint_freq > 0:
         callbacks.append(Checkpointer(folder, spec.checkpoint_freq, callback, make_both, spec.env_id, elapsed))
+    if not isinstance(model, OffPolicyAlgorithm):
+        callbacks.append(StopAtBudget(spec.n_timesteps))
     start = time.perf_counter()
     model.learn(
         spec.n_timesteps - model.num_timesteps,

@@ -2,14 +2,16 @@
 
 import re
 import shutil
+from collections.abc import Sequence
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import yaml
 
 from sb3_sera.experiments import bench, intake, ledger
-from sb3_sera.experiments.claims import evaluate
+from sb3_sera.experiments.claims import ClaimResult, evaluate
 from sb3_sera.experiments.claims_text import claims_section
 from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sb3_sera.experiments.records import read_record
@@ -174,8 +176,11 @@ def _unprinted(quoted: str, printed: str) -> list[tuple[str, ...]]:
     return [q for q in INTERVAL.findall(quoted) if not any(all(map(_agree, q, p)) for p in intervals)]
 
 
-#: A quoted q-value: ``q 0.0305`` or ``BH q 0.13`` (Benjamini-Hochberg), ``BY q 0.1373`` (Benjamini-Yekutieli)
-QVALUE = re.compile(r"\b(BY )?q (\d\.\d+)")
+#: A quoted q-value: ``q 0.0305`` or ``BH q 0.13`` (Benjamini-Hochberg), ``BY q 0.1373`` (Benjamini-Yekutieli), a
+#: line break anywhere between the words
+QVALUE = re.compile(r"\b(BY\s+)?q\s+(\d\.\d+)")
+#: A claim named in the readings: its id in backticks
+CLAIM_ID = re.compile(r"`([a-z0-9]+(?:-[a-z0-9]+)+)`")
 
 
 def _unprinted_q_values(quoted: str, printed: str) -> list[str]:
@@ -191,10 +196,27 @@ def _unprinted_q_values(quoted: str, printed: str) -> list[str]:
                 if name in header:
                     values.append(cells[header.index(name)])
     return [
-        f"{by or ''}q {value}"
+        f"{'BY ' if by else ''}q {value}"
         for by, value in QVALUE.findall(quoted)
         if not any(_agree(value, cell) for cell in columns["BY q" if by else "BH q"] if re.fullmatch(r"\d\.\d+", cell))
     ]
+
+
+def _misattributed_q_values(quoted: str, decided: Sequence[ClaimResult]) -> list[str]:
+    """
+    The q-values of ``quoted`` (bullets) that are not the q-value of the claim they name: the last claim id in
+    backticks before each, in its bullet. A q-value with no claim named before it in its bullet is one.
+    """
+    q_values = {result.claim.id: (result.adjusted_p, result.by_q) for result in decided if not result.claim.primary}
+    wrong = []
+    for bullet in re.split(r"\n\s*- ", quoted):
+        for match in QVALUE.finditer(bullet):
+            named = [claim for claim in CLAIM_ID.findall(bullet[: match.start()]) if claim in q_values]
+            by, value = match.groups()
+            ledger_value = q_values[named[-1]][1 if by else 0] if named else None
+            if ledger_value is None or not _agree(value, f"{ledger_value:.4f}"):
+                wrong.append(f"{named[-1] if named else 'no claim named'}: {'BY ' if by else ''}q {value}")
+    return wrong
 
 
 def _section(text: str, start: str) -> str:
@@ -246,6 +268,24 @@ def test_the_readings_quote_only_intervals_and_q_values_the_ledger_prints():
     readings = page[page.index("\n- ") :]
     assert QVALUE.search(readings) and _unprinted_q_values(readings, printed) == []
     assert _unprinted_q_values(readme, printed) == []
+    # ... and each the q-value of the claim it names (its id in backticks before it in its bullet)
+    assert _misattributed_q_values(readings, decided) == []
+    assert _misattributed_q_values(readme, decided) == []
+
+
+def test_misattributed_finds_a_q_value_of_another_claim():
+    a, b = (
+        SimpleNamespace(claim=SimpleNamespace(id=name, primary=False), adjusted_p=q, by_q=q * 4.5)
+        for name, q in (("ma-rel-bias-matd3", 0.0042), ("ma-bias-maddpg", 0.0056))
+    )
+    right = "- `ma-bias-maddpg` (q 0.0056, BY q\n  0.0252); its `ma-rel-bias-matd3` q 0.0042\n- `ma-bias-maddpg` q 0.0056"
+    assert _misattributed_q_values(right, [a, b]) == []
+    wrong = "- `ma-rel-bias-matd3` (q 0.0056, BY q 0.0250)\n- MATD3's q 0.0042"
+    assert _misattributed_q_values(wrong, [a, b]) == [
+        "ma-rel-bias-matd3: q 0.0056",
+        "ma-rel-bias-matd3: BY q 0.0250",
+        "no claim named: q 0.0042",
+    ]
 
 
 def test_add_is_all_or_nothing_and_names_each_refusal(bench_out, tmp_path, monkeypatch):
