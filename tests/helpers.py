@@ -18,6 +18,7 @@ import pytest
 import torch as th
 
 from sb3_sera import SERASAC
+from sb3_sera.common.compiled.adam import ADAM_KEYS
 
 #: The repository's top folder (README, docs, notebooks, benchmarks, results, hyperparams)
 ROOT = Path(__file__).resolve().parents[1]
@@ -179,6 +180,38 @@ def assert_compiled_stays_with_eager(models: list[Any], batch_size: int, learn_s
         model.learn(learn_steps, reset_num_timesteps=False)
     assert models[0]._n_updates == models[1]._n_updates
     assert largest_difference() < COMPILED_BOUND
+
+
+def assert_set_parameters_reaches_the_compiled_step(build: Any, other: Any, batch_size: int, steps: int = 10) -> None:
+    """
+    ``build(False)`` and ``build(True)`` (eager, compiled), each given ``other``'s parameters and optimizer states by
+    SB3's ``set_parameters`` (a copy each, as from a file), train ``steps`` steps to the same state: the compiled step
+    reads what was loaded. Given ``other``'s own tensors, the compiled model copies them into the tensors its step
+    was compiled with (fixed addresses, which CUDA graphs replay), its optimizers hold those, and it shares none with
+    ``other`` (eager torch would: its ``load_state_dict`` keeps tensors of the right dtype and device).
+    """
+    from stable_baselines3.common.utils import set_random_seed
+
+    def compiled_with(model: Any) -> list[th.Tensor]:
+        return [value for plan in model._adam_plans for state in plan.state() for value in state]
+
+    eager, compiled = build(False), build(True)
+    tensors = compiled_with(compiled)
+    for model in (eager, compiled):
+        model.set_parameters(copy.deepcopy(other.get_parameters()))
+        model.replay_buffer = other.replay_buffer
+        set_random_seed(1)
+        model.train(gradient_steps=steps, batch_size=batch_size)
+    assert_close_state(snapshot(eager, optimizers=True), snapshot(compiled, optimizers=True))
+    before = snapshot(other, optimizers=True)
+    compiled.set_parameters(other.get_parameters())
+    compiled.train(gradient_steps=2, batch_size=batch_size)
+    assert all(now is then for now, then in zip(compiled_with(compiled), tensors, strict=True))
+    for plan in compiled._adam_plans:
+        for param, state in zip(plan.params, plan.state(), strict=True):
+            assert all(plan.optimizer.state[param][key] is value for key, value in zip(ADAM_KEYS, state, strict=True))
+    after = snapshot(other, optimizers=True)
+    assert all(th.equal(after[key], before[key]) for key in before)
 
 
 def assert_gpu_trained_model_loads_on_the_cpu(model: Any, path: Path, env: Any) -> None:

@@ -36,6 +36,7 @@ from sb3_sera.common.compiled import (
 )
 from sb3_sera.common.finite import FiniteUpdates, check_rollout_buffer, with_env_step_check
 from sb3_sera.common.hyperparameters import check_hyperparameters
+from sb3_sera.common.targets import sac_td_target
 from sb3_sera.ctde.policies import MAPPOPolicy, MASACPolicy, MATD3Policy, fill_agent_layout, make_env_for_policy
 
 
@@ -172,12 +173,7 @@ class MASAC(_CTDEAlgorithm, CompiledUpdate, SAC):
             ent_coef_loss = -(self.log_ent_coef * (log_prob + self.target_entropy).detach()).mean()
         else:
             ent_coef = self.ent_coef_tensor
-        with th.no_grad():
-            next_actions, next_log_prob = self.actor.action_log_prob(replay_data.next_observations)
-            next_q_values = th.cat(self.critic_target(replay_data.next_observations, next_actions), dim=1)
-            next_q_values, _ = th.min(next_q_values, dim=1, keepdim=True)
-            next_q_values = next_q_values - ent_coef * next_log_prob.reshape(-1, 1)
-            target_q_values = replay_data.rewards + (1 - replay_data.dones) * self.gamma * next_q_values
+        target_q_values = sac_td_target(self.actor, self.critic_target, replay_data, ent_coef, self.gamma)
         current_q_values = self.critic(replay_data.observations, replay_data.actions)
         critic_loss = 0.5 * sum(F.mse_loss(current_q, target_q_values) for current_q in current_q_values)
         assert isinstance(critic_loss, th.Tensor)

@@ -23,6 +23,7 @@ from torch import nn
 
 from sb3_sera.common.capabilities import OwnTDTargets, PerCriticRates, as_the_model_sees, capability
 from sb3_sera.common.correlation import correlation_matrix, mean_off_diagonal
+from sb3_sera.common.targets import sac_td_target
 
 #: Files written beside ``evaluations.npz`` in the callback's ``log_path``
 BIAS_FILE = "initial_state_bias.npz"
@@ -214,12 +215,8 @@ def sac_td_targets(model: SAC, replay_data: ReplayBufferSamples) -> tuple[th.Ten
     SB3's SAC target for a replayed batch, ``y = r + gamma (1 - d) (min_k Qbar_k(s', a') - alpha log pi(a'|s'))`` with
     ``a'`` drawn from the actor, and the online critics' values ``Q_k(s, a)``: ``(S, 1)`` and ``(S, K)``.
     """
-    discounts = replay_data.discounts if replay_data.discounts is not None else model.gamma
     ent_coef = th.exp(model.log_ent_coef.detach()) if model.log_ent_coef is not None else model.ent_coef_tensor
-    next_actions, next_log_prob = model.actor.action_log_prob(replay_data.next_observations)
-    next_q_values = th.cat(model.critic_target(replay_data.next_observations, next_actions), dim=1)
-    next_q = th.min(next_q_values, dim=1, keepdim=True).values - ent_coef * next_log_prob.reshape(-1, 1)
-    target_q_values = replay_data.rewards + (1 - replay_data.dones) * discounts * next_q
+    target_q_values = sac_td_target(model.actor, model.critic_target, replay_data, ent_coef, model.gamma)
     return target_q_values, th.cat(model.critic(replay_data.observations, replay_data.actions), dim=1)
 
 

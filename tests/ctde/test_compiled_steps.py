@@ -25,6 +25,7 @@ from tests.helpers import (
     assert_non_finite_stops_the_step,
     assert_same_state,
     assert_schedule_does_not_recompile,
+    assert_set_parameters_reaches_the_compiled_step,
     compiled_settings,
     snapshot,
 )
@@ -70,6 +71,20 @@ def test_iet_compiles_as_masac_does(tmp_path):
     assert_gpu_trained_model_loads_on_the_cpu(compiled, tmp_path / "model", gym.make(CTDE_TASK))
 
 
+def test_the_compiled_step_discounts_n_step_returns_as_sb3_does():
+    # An n-step buffer gives each transition its own discount (gamma ** n), which SB3's SAC target uses in place of
+    # gamma; SB3 has n-step returns for flat observations only, so MASAC is SB3's SAC here
+    def build_n_step(compile_update: bool) -> MASAC:
+        model = MASAC(
+            "MlpPolicy", "Pendulum-v1", seed=0, compile_update=compile_update, n_steps=3, **compiled_settings("ctde")
+        )
+        model.learn(SETTINGS["learning_starts"] + 1)
+        return model
+
+    _, compiled, _ = assert_compiled_equals_eager(build_n_step, SETTINGS["batch_size"])
+    assert compiled.replay_buffer.sample(4).discounts is not None
+
+
 def test_the_compiled_step_is_one_graph_with_fixed_addresses():
     model = build(True)
     batch = model.replay_buffer.sample(SETTINGS["batch_size"])
@@ -81,6 +96,14 @@ def test_the_compiled_step_is_one_graph_with_fixed_addresses():
 
 def test_a_non_finite_value_stops_the_compiled_step_and_changes_nothing():
     assert_non_finite_stops_the_step(build(True), SETTINGS["batch_size"])
+
+
+@pytest.mark.parametrize("algorithm", [MASAC, MATD3])
+def test_set_parameters_reaches_the_compiled_step(algorithm):
+    # SAC's plans and TD3's: what another model's set_parameters loads is what the step reads, at the same addresses
+    other = algorithm("CTDEPolicy", ENV, seed=5, **compiled_settings("ctde"))
+    other.learn(SETTINGS["learning_starts"] + 40)
+    assert_set_parameters_reaches_the_compiled_step(partial(build, algorithm=algorithm), other, SETTINGS["batch_size"])
 
 
 def test_bad_modes_are_refused():

@@ -115,7 +115,10 @@ def test_an_interrupted_run_resumes_to_the_same_final_parameters(tmp_path, monke
     assert not (resumed / CHECKPOINT_DIR).exists()
     # The records say whether, from where and under which code a run was resumed
     (resume,) = load_result(resumed).resumes
-    assert resume["from_step"] == _last_checkpoint(_Stop.at, ROLLOUT.get(algo, 1)) and resume["code_before"] == resume["code_after"]
+    assert (
+        resume["from_step"] == _last_checkpoint(_Stop.at, ROLLOUT.get(algo, 1))
+        and resume["code_before"] == resume["code_after"]
+    )
     assert load_result(straight).resumes == [] and not (resumed / engine.RESUMES_FILE).exists()
 
 

@@ -23,6 +23,7 @@ from tests.helpers import (
     assert_gpu_trained_model_loads_on_the_cpu,
     assert_same_state,
     assert_schedule_does_not_recompile,
+    assert_set_parameters_reaches_the_compiled_step,
     compiled_settings,
     snapshot,
 )
@@ -151,6 +152,12 @@ def test_a_compiled_model_saves_loads_and_goes_on(eager_and_compiled, tmp_path):
         loaded.learn(2, reset_num_timesteps=False)
         assert loaded.critic.optimizer.state_dict()["state"][0]["step"] == steps + 2
         assert loaded.actor.optimizer.state_dict()["state"][0]["step"] == steps + 2
+
+
+def test_set_parameters_reaches_the_compiled_step():
+    other = SERASAC("MlpPolicy", "Pendulum-v1", seed=5, **SETTINGS)
+    other.learn(SETTINGS["learning_starts"] + 40)
+    assert_set_parameters_reaches_the_compiled_step(build, other, SETTINGS["batch_size"])
 
 
 def test_the_compiled_step_follows_the_critic_lr_max_schedule():

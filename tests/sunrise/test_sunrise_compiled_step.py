@@ -11,6 +11,7 @@ from tests.helpers import (
     assert_gpu_trained_model_loads_on_the_cpu,
     assert_non_finite_stops_the_step,
     assert_schedule_does_not_recompile,
+    assert_set_parameters_reaches_the_compiled_step,
     compiled_settings,
 )
 
@@ -47,3 +48,9 @@ def test_a_learning_rate_schedule_does_not_recompile_the_step():
         return 1e-3 * progress
 
     assert_schedule_does_not_recompile(build(True, learning_rate=rate), SETTINGS["batch_size"], rate)
+
+
+def test_set_parameters_reaches_the_compiled_step():
+    other = SUNRISE("MlpPolicy", "Pendulum-v1", seed=5, **SETTINGS)
+    other.learn(SETTINGS["learning_starts"] + 40)
+    assert_set_parameters_reaches_the_compiled_step(build, other, SETTINGS["batch_size"])

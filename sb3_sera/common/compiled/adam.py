@@ -14,6 +14,8 @@ import torch as th
 Parameters = Callable[[], list[th.Tensor]]
 #: One parameter's Adam state: ``(step, exp_avg, exp_avg_sq)``
 AdamState = tuple[th.Tensor, th.Tensor, th.Tensor]
+#: Their keys in torch's ``Adam`` state, in that order
+ADAM_KEYS = ("step", "exp_avg", "exp_avg_sq")
 
 
 class AdamPlan:
@@ -64,6 +66,8 @@ class AdamPlan:
                     f"{sorted(str(kind) for kind in kinds)}: move the modules to one device and dtype, or use "
                     "compile_update=False"
                 )
+        #: The state tensors the step reads, once :meth:`state` has made them
+        self._held: list[AdamState] | None = None
         self.settings: list[tuple[float, float, float, float, bool]] = [
             (*group["betas"], group["eps"], group["weight_decay"], bool(group.get("decoupled_weight_decay", False)))
             for group in optimizer.param_groups
@@ -71,29 +75,51 @@ class AdamPlan:
 
     def state(self) -> list[AdamState]:
         """
-        Each parameter's ``(step, exp_avg, exp_avg_sq)`` from the optimizer (read outside the graph: loading a model
-        replaces them), created where missing as torch creates them, with ``step`` on the parameter's device; they
-        and the parameters are marked as static addresses (``torch._dynamo.mark_static_address``, unguarded), which
-        CUDA graphs need of every tensor the step writes in place.
+        Each parameter's ``(step, exp_avg, exp_avg_sq)``: the optimizer's own tensors, created where missing as torch
+        creates them (``step`` on the parameter's device), the same tensors at every call. They and the parameters are
+        marked as static addresses (``torch._dynamo.mark_static_address``, unguarded), which CUDA graphs need of
+        every tensor the step writes in place, so whatever replaces the optimizer's state (its ``load_state_dict``,
+        as SB3's ``set_parameters`` and ``load`` call it) is copied into these tensors, which go back into the
+        optimizer: a step replayed at their addresses reads the values loaded, and a model loaded from another's
+        parameters shares no tensor with it (torch's ``load_state_dict`` keeps the given tensors where their dtype
+        and device fit).
         """
-        states = []
-        for param in self.params:
+        if self._held is None:
+            self._held = [self._param_state(param) for param in self.params]
+            # Everything the step writes in place has a fixed address for CUDA graphs (cuda_graph_blockers): the
+            # states and the parameters no module holds (the entropy coefficient); unguarded, so that a model
+            # compiled again finds its step in Inductor's cache
+            for tensor in [*self.params, *(value for state in self._held for value in state)]:
+                th._dynamo.mark_static_address(tensor, guard=False)
+            if any(param.device.type != "cpu" for param in self.params):
+                # torch's own step (after loading without compile_update) accepts a device step when capturable
+                for group in self.optimizer.param_groups:
+                    group["capturable"] = not group.get("fused", False)
+            return self._held
+        for param, held in zip(self.params, self._held, strict=True):
             state = self.optimizer.state[param]
-            if not state:
-                state["step"] = th.zeros((), dtype=th.float32, device=param.device)
-                state["exp_avg"] = th.zeros_like(param, memory_format=th.preserve_format)
-                state["exp_avg_sq"] = th.zeros_like(param, memory_format=th.preserve_format)
-            states.append((state["step"], state["exp_avg"], state["exp_avg_sq"]))
-        # Everything the step writes in place has a fixed address for CUDA graphs (cuda_graph_blockers): the states
-        # and the parameters no module holds (the entropy coefficient); unguarded, so a loaded model's new state
-        # tensors neither recompile the step nor are refused
-        for tensor in [*self.params, *(value for state in states for value in state)]:
-            th._dynamo.mark_static_address(tensor, guard=False)
+            current = tuple(state.get(key) for key in ADAM_KEYS)
+            if any(value is not kept for value, kept in zip(current, held, strict=True)):
+                # Replaced (a loaded state) or emptied (an optimizer loaded before its first step): the values into
+                # the tensors the step reads, and those back into the optimizer
+                for key, value, kept in zip(ADAM_KEYS, current, held, strict=True):
+                    if value is None:
+                        kept.zero_()
+                    else:
+                        kept.copy_(value)
+                    state[key] = kept
         if any(param.device.type != "cpu" for param in self.params):
-            # torch's own step (after loading without compile_update) accepts a device step when capturable
-            for group in self.optimizer.param_groups:
+            for group in self.optimizer.param_groups:  # a loaded group brings its own flags
                 group["capturable"] = not group.get("fused", False)
-        return states
+        return self._held
+
+    def _param_state(self, param: th.Tensor) -> AdamState:
+        state = self.optimizer.state[param]
+        if not state:
+            state["step"] = th.zeros((), dtype=th.float32, device=param.device)
+            state["exp_avg"] = th.zeros_like(param, memory_format=th.preserve_format)
+            state["exp_avg_sq"] = th.zeros_like(param, memory_format=th.preserve_format)
+        return state["step"], state["exp_avg"], state["exp_avg_sq"]
 
 
 def scalar_dtype(device: th.device) -> th.dtype:
