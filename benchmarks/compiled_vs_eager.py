@@ -32,8 +32,8 @@ import torch as th
 from stable_baselines3.common.logger import configure
 
 from sb3_sera import SERASAC
-from sb3_sera.common import graph_passes
 from sb3_sera.common.compiled import base as compiled_base
+from sb3_sera.common.compiled import graph_passes
 from sb3_sera.common.compiled.modes import CompileMode, compile_step
 from sb3_sera.sera import sera as sera_module
 from sb3_sera.sera.update import actor_value_gathered
@@ -254,7 +254,7 @@ def _first_step_account(eager: SERASAC, compiled: SERASAC, mine: dict[str, th.Te
 def unordered_draws() -> Iterator[None]:
     """
     Steps compiled in it leave their random draws in the order Inductor's scheduler gives them: neither this
-    package's :class:`~sb3_sera.common.graph_passes.KeepRandomOrder` nor torch's own chain (from torch 2.13) keeps
+    package's :class:`~sb3_sera.common.compiled.graph_passes.KeepRandomOrder` nor torch's own chain (from torch 2.13) keeps
     them in program order, and no compiled graph is taken from this process's Dynamo cache or Inductor's caches.
     """
     from torch._inductor.fx_passes import post_grad

@@ -27,7 +27,7 @@ process, a table of
   the speed section and an untimed ``learn()`` of as many steps: ``learn()``, ``train()`` alone (one gradient step a
   call), the rest (acting, env step, buffer, callbacks, logging), the compiled step's replay alone (``--split-steps``
   replays back to back, timed with CUDA events), an action (``_sample_action``) eager and through the compiled
-  actor, and the host reads per env step (:class:`~sb3_sera.common.host_reads.HostReads`);
+  actor, and the host reads per env step (`benchmarks/host_reads.py`);
 - ``many``: 1, 4 and 8 processes (``--processes``) of SERASAC ``"reduce-overhead"`` learning on ``--env`` on the one
   device at once: each one's ``learn()`` rate and their total, against one process's.
 
@@ -56,6 +56,7 @@ from typing import Any
 import compiled_vs_eager
 import gymnasium as gym
 import torch as th
+from host_reads import HostReads
 from stable_baselines3 import SAC
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.buffers import ReplayBuffer
@@ -63,7 +64,6 @@ from timing import interleaved_rates, median_iqr
 
 from sb3_sera import MASAC, SERASAC
 from sb3_sera.common.compiled import CompiledUpdate, CUDAGraphSkipWarning
-from sb3_sera.common.host_reads import HostReads
 from sb3_sera.common.mujoco_log import route_mujoco_warnings
 
 SECTIONS = ("cudagraphs", "equality", "order", "draws", "gradients", "speed", "split", "many")

@@ -3,6 +3,7 @@ comparisons of a model's torch state and of two runs' ends, and the command line
 included)."""
 
 import copy
+import importlib.util
 import os
 import signal
 import subprocess
@@ -10,6 +11,7 @@ import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -44,6 +46,15 @@ _COMPILED_SETTINGS: dict[str, dict[str, Any]] = {
 }
 #: Their pytest-xdist group, by the same names
 COMPILED_GROUP = {name: pytest.mark.xdist_group(f"compiled-{name}") for name in _COMPILED_SETTINGS}
+
+
+def benchmark_module(name: str) -> ModuleType:
+    """The module ``benchmarks/<name>.py``, imported from its file (the benchmarks are scripts, not a package)."""
+    spec = importlib.util.spec_from_file_location(f"benchmarks_{name}", ROOT / "benchmarks" / f"{name}.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def table_cells(line: str) -> list[str]:

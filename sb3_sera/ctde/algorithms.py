@@ -36,6 +36,7 @@ from sb3_sera.common.compiled import (
 )
 from sb3_sera.common.finite import FiniteUpdates, check_rollout_buffer, with_env_step_check
 from sb3_sera.common.hyperparameters import check_hyperparameters
+from sb3_sera.common.naming import NamedRuns
 from sb3_sera.common.targets import sac_td_target
 from sb3_sera.ctde.policies import MAPPOPolicy, MASACPolicy, MATD3Policy, fill_agent_layout, make_env_for_policy
 
@@ -49,7 +50,7 @@ def _sb3_algorithm(algorithm_class: type[BaseAlgorithm]) -> type[BaseAlgorithm]:
     )
 
 
-class _CTDEAlgorithm(Capabilities, BaseAlgorithm):
+class _CTDEAlgorithm(NamedRuns, Capabilities, BaseAlgorithm):
     """
     What each multi-agent algorithm adds to its SB3 algorithm (comes first in the bases): a CTDE env refuses any
     policy but ``"CTDEPolicy"``, and the CTDE policy learns the agents' action sizes from the env. Each algorithm

@@ -21,7 +21,6 @@ from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper, unwrap_vec_n
 
 from sb3_sera.common.arguments import check_keywords
 from sb3_sera.common.hyperparameters import check_int
-from sb3_sera.common.naming import NamedRuns
 from sb3_sera.common.tuning import TuningSpace
 from sb3_sera.ctde.algorithms import MASAC
 from sb3_sera.ctde.policies import agent_action_dims_of
@@ -46,7 +45,7 @@ def _signature() -> inspect.Signature:
     return inspect.Signature([*parameters, latent])
 
 
-class IET(NamedRuns, MASAC):
+class IET(MASAC):
     """
     IET on a CTDE task (our cooperative adaptation, see the module's docstring): MASAC with per-agent soft-modular
     actors (:class:`~sb3_sera.iet.policies.IETPolicy`) conditioned on per-agent latents ``z ~ N(0, I)`` drawn at

@@ -13,9 +13,17 @@ from torch._subclasses.fake_tensor import DataDependentOutputException, FakeTens
 from torch.fx.experimental.proxy_tensor import make_fx
 
 from sb3_sera import IET, MASAC, MATD3, SERASAC, SUNRISE
-from sb3_sera.common import graph_passes
-from sb3_sera.common.compiled import AdamPlan, adam, all_finite, masked_adam, masked_polyak, read_steps, step_options
-from sb3_sera.common.graph_passes import KeepRandomOrder
+from sb3_sera.common.compiled import (
+    AdamPlan,
+    adam,
+    all_finite,
+    graph_passes,
+    masked_adam,
+    masked_polyak,
+    read_steps,
+    step_options,
+)
+from sb3_sera.common.compiled.graph_passes import KeepRandomOrder
 from tests.helpers import CTDE_TASK, ENV_ID
 
 

@@ -167,16 +167,17 @@ def test_multi_agent_algorithms_keep_their_sb3_signature(algo, base):
     assert list(parameters.values()) == list(inspect.signature(base).parameters.values())
 
 
-@pytest.mark.parametrize("algo", [SERASAC, SUNRISE, ACE])
+@pytest.mark.parametrize("algo", [SERASAC, SUNRISE, ACE, MASAC, MATD3, MADDPG, MAPPO])
 def test_tensorboard_runs_are_named_after_the_algorithm(algo, tmp_path):
-    model = algo("MlpPolicy", "Pendulum-v1", tensorboard_log=str(tmp_path), **SMALL)
+    settings = {"n_steps": 32, "batch_size": 16} if algo is MAPPO else SMALL
+    model = algo("MlpPolicy", "Pendulum-v1", tensorboard_log=str(tmp_path), **settings)
     model.learn(60)
     model.learn(60, reset_num_timesteps=False, tb_log_name="mine")
     # SB3 continues the latest run of that name when reset_num_timesteps=False (id 0: there was none)
     assert sorted(path.name for path in tmp_path.iterdir()) == [f"{algo.__name__}_1", "mine_0"]
 
 
-@pytest.mark.parametrize("algo", [SERASAC, SUNRISE, ACE])
+@pytest.mark.parametrize("algo", [SERASAC, SUNRISE, ACE, MASAC, MATD3, MADDPG])
 def test_learn_warns_when_it_would_train_nothing(algo):
     model = algo("MlpPolicy", "Pendulum-v1", **{**SMALL, "learning_starts": 100})
     with pytest.warns(
