@@ -146,7 +146,7 @@ def evaluation_callback(env_id: str, folder: Path) -> Any:
     from stable_baselines3.common.env_util import make_vec_env
 
     try:
-        from sb3_sera.experiments.evaluation import InitialStateBiasCallback
+        from sb3_sera.common.evaluation import InitialStateBiasCallback
     except ImportError:  # commits before the module moved
         from sb3_sera.common.callbacks import InitialStateBiasCallback  # type: ignore[no-redef]
     eval_env = make_vec_env(env_id, n_envs=1, seed=10_000)

@@ -1,7 +1,7 @@
 """
 Correlations of an ensemble's columns (one per critic) over a batch: SERA's diagnostics in its gradient step
 (:mod:`sb3_sera.sera.aggregation`) and the evaluations' critic diagnostics of every algorithm
-(:mod:`sb3_sera.experiments.evaluation`) share them, so that a baseline's runs depend on this code and not on SERA's.
+(:mod:`sb3_sera.common.evaluation`) share them, so that a baseline's runs depend on this code and not on SERA's.
 """
 
 import torch as th

@@ -26,10 +26,10 @@ from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_sera.common.capabilities import as_the_model_sees
+from sb3_sera.common.evaluation import InitialStateBiasCallback
 from sb3_sera.common.mujoco_log import route_mujoco_warnings
 from sb3_sera.ctde.env import STATE_KEY
 from sb3_sera.experiments.checkpoint import Checkpointer, has_checkpoint, load_checkpoint, remove_checkpoints
-from sb3_sera.experiments.evaluation import InitialStateBiasCallback
 from sb3_sera.experiments.folders import notice, set_aside
 from sb3_sera.experiments.policy_kwargs import parse_policy_kwargs
 from sb3_sera.experiments.records import (

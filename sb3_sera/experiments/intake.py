@@ -14,8 +14,8 @@ from typing import Any
 import numpy as np
 import yaml
 
+from sb3_sera.common.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sb3_sera.experiments.claims import Claim
-from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sb3_sera.experiments.ledger import CLAIMS_FILE, LEDGER_DIR, ledger_claims
 from sb3_sera.experiments.records import NPZ_ERRORS, RESULT_FILE, env_name, load_result, read_record, run_ids
 from sb3_sera.experiments.report import Skipped, run_folders

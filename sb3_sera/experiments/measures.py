@@ -42,8 +42,8 @@ from pathlib import Path
 
 import numpy as np
 
+from sb3_sera.common.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sb3_sera.experiments import stats
-from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sb3_sera.experiments.records import NPZ_ERRORS, RunResult
 
 

@@ -75,7 +75,7 @@ def code_digest() -> str:
 #: diagnostics, the checkpoints a resumed run goes on from), whatever the algorithm
 RUN_MODULES = (
     "sb3_sera.experiments.engine",
-    "sb3_sera.experiments.evaluation",
+    "sb3_sera.common.evaluation",
     "sb3_sera.experiments.checkpoint",
     "sb3_sera.experiments.env_state",
     "sb3_sera.experiments.policy_kwargs",

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from sb3_sera.experiments.evaluation import BIAS_FILE, initial_state_bias
+from sb3_sera.common.evaluation import BIAS_FILE, initial_state_bias
 
 #: File that marks a run as finished (written last)
 RESULT_FILE = "result.json"

@@ -19,8 +19,8 @@ import gymnasium as gym
 from stable_baselines3.common.base_class import BaseAlgorithm
 
 from sb3_sera.common.capabilities import capabilities
+from sb3_sera.common.evaluation import InitialStateBiasCallback
 from sb3_sera.experiments.defaults import ZOO_COMMANDS
-from sb3_sera.experiments.evaluation import InitialStateBiasCallback
 from sb3_sera.experiments.registry import (
     HYPERPARAMS_DIR,
     ZOO_ALGOS,
@@ -74,7 +74,7 @@ def playback_algos() -> dict[str, type[BaseAlgorithm]]:
 def register_with_zoo(command: str = "train") -> None:
     """
     Add the package's algorithms, samplers and converters to rl-zoo3's tables, and make its evaluations also record
-    the initial-state value bias (:class:`~sb3_sera.experiments.evaluation.InitialStateBiasCallback`); idempotent.
+    the initial-state value bias (:class:`~sb3_sera.common.evaluation.InitialStateBiasCallback`); idempotent.
 
     :param command: the zoo command about to run; for ``enjoy`` and ``record-video`` the algorithms are those of
         :func:`playback_algos`

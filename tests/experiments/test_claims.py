@@ -10,9 +10,9 @@ import pytest
 import yaml
 from scipy import stats
 
+from sb3_sera.common.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sb3_sera.experiments import claims, claims_text, measures
 from sb3_sera.experiments.declared import declaration, seen_before_lines
-from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sb3_sera.experiments.report import group_runs, load_runs
 from sb3_sera.experiments.stats import benjamini_hochberg
 

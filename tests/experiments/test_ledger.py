@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import yaml
 
+from sb3_sera.common.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sb3_sera.experiments import bench, intake, ledger
 from sb3_sera.experiments.claims import ClaimResult, evaluate
 from sb3_sera.experiments.claims_text import claims_section
-from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sb3_sera.experiments.records import read_record
 from sb3_sera.experiments.report import group_runs, load_runs
 from tests.helpers import ROOT, table_cells, tiny_grid

@@ -8,9 +8,9 @@ import yaml
 from rliable import metrics
 from scipy import stats as scipy_stats
 
+from sb3_sera.common.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sb3_sera.experiments import stats
 from sb3_sera.experiments.cli import main
-from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sb3_sera.experiments.records import RunResult
 from sb3_sera.experiments.report import aligned, group_runs, load_runs, report_roots, write_report
 from sb3_sera.experiments.report.groups import RunGroup

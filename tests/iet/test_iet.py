@@ -310,7 +310,7 @@ def test_signature_progress_bar_and_tensorboard(tmp_path):
 
 
 def test_evaluations_draw_latents_without_touching_training(tmp_path):
-    from sb3_sera.experiments.evaluation import InitialStateBiasCallback
+    from sb3_sera.common.evaluation import InitialStateBiasCallback
 
     def train(evaluate: bool):
         model = IET("CTDEPolicy", CTDE_TASK, seed=0, **SMALL_CTDE)

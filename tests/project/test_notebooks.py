@@ -9,7 +9,7 @@ import pytest
 import yaml
 from nbclient import NotebookClient
 
-from sb3_sera.experiments.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
+from sb3_sera.common.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from tests.helpers import ROOT
 
 NOTEBOOKS = sorted((ROOT / "notebooks").glob("*.ipynb"))

@@ -13,7 +13,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.logger import configure
 
 from sb3_sera import SERASAC
-from sb3_sera.experiments.evaluation import (
+from sb3_sera.common.evaluation import (
     BIAS_FILE,
     DIAGNOSTICS_FILE,
     InitialStateBiasCallback,
