@@ -159,21 +159,6 @@ def replay_ms(model: CompiledUpdate, replays: int, cuda: bool) -> float:
     return start.elapsed_time(end) / replays
 
 
-def acting_ms(model: CompiledUpdate, compiled: bool, actions: int, cuda: bool) -> float:
-    """Milliseconds per action ``learn()`` takes (``_sample_action``, the action read back), eager or compiled."""
-    before, model.compile_action = model.compile_action, compiled
-
-    def act() -> None:
-        for _ in range(actions):
-            model._sample_action(0, model.action_noise, model.n_envs)
-
-    try:
-        act()  # warm (and compile)
-        return 1e3 * _timed(act, cuda) / actions
-    finally:
-        model.compile_action = before
-
-
 def _train_calls(model: BaseAlgorithm, calls: int) -> None:
     """``calls`` calls of ``train()``, one gradient step each on the model's batch size."""
     for _ in range(calls):
@@ -197,8 +182,6 @@ def split_rows(models: dict[str, BaseAlgorithm], steps: int, cuda: bool) -> list
         ]
         if isinstance(model, CompiledUpdate) and model._compiled_step is not None:
             cells.append(f"the replay alone {replay_ms(model, steps, cuda):.3f} ms")
-            eager, compiled = (acting_ms(model, flag, steps, cuda) for flag in (False, True))
-            cells.append(f"an action {eager:.3f} ms eager, {compiled:.3f} ms compiled")
         cells.append(f"{reads.count / steps:.2f} host reads")
         rows.append(f"| per env step | {name} | {', '.join(cells)} | |")
     return rows

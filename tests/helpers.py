@@ -49,10 +49,16 @@ COMPILED_GROUP = {name: pytest.mark.xdist_group(f"compiled-{name}") for name in 
 
 
 def benchmark_module(name: str) -> ModuleType:
-    """The module ``benchmarks/<name>.py``, imported from its file (the benchmarks are scripts, not a package)."""
-    spec = importlib.util.spec_from_file_location(f"benchmarks_{name}", ROOT / "benchmarks" / f"{name}.py")
+    """
+    The module ``benchmarks/<name>.py``, imported from its file under its own name, as the benchmark scripts import
+    it (they are scripts, not a package); registered in ``sys.modules``, where torch's compiler looks its classes up.
+    """
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / f"{name}.py")
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
     spec.loader.exec_module(module)
     return module
 

@@ -34,8 +34,6 @@ class Capabilities:
     per_critic_rates: ClassVar[bool] = False
     #: Acts on per-episode latents that an env gets from ``with_latents(env, seed)`` (evaluation envs included)
     acts_on_latents: ClassVar[bool] = False
-    #: Compiles its whole gradient step (``compile_update``, :class:`~sb3_sera.common.compiled.CompiledUpdate`)
-    compiles_update: ClassVar[bool] = False
     #: Its own search space for rl-zoo3's ``optimize`` (:class:`~sb3_sera.common.tuning.TuningSpace`), declared
     #: beside the algorithm; None: it tunes like ``tunes_like``
     tuning: ClassVar[TuningSpace | None] = None

@@ -135,7 +135,6 @@ class MASAC(_CTDEAlgorithm, CompiledUpdate, SAC):
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {**SAC.policy_aliases, "CTDEPolicy": MASACPolicy}
     tunes_like: ClassVar[str | None] = "sac"
     soft_q_critics: ClassVar[bool] = True
-    compiles_update: ClassVar[bool] = True
     __signature__ = _with_compile_update(inspect.signature(SAC))
 
     def _setup_model(self) -> None:
@@ -151,9 +150,9 @@ class MASAC(_CTDEAlgorithm, CompiledUpdate, SAC):
     def _optimizer_plans(self) -> list[AdamPlan]:
         return sac_plans(self.actor, self.critic, self.ent_coef_optimizer, self.log_ent_coef)
 
-    def _step_flags(self, gradient_step: int) -> tuple[bool, ...]:
+    def _step_due(self, gradient_step: int) -> bool:
         # SB3's SAC: every target_update_interval gradient steps of this call, its count restarted at each call
-        return (gradient_step % self.target_update_interval == 0,)
+        return gradient_step % self.target_update_interval == 0
 
     def _gradient_step_graph(
         self,
@@ -196,10 +195,10 @@ class MASAC(_CTDEAlgorithm, CompiledUpdate, SAC):
             critic_loss=critic_loss,
             actor_loss=actor_loss,
             learning_rates=learning_rates,
-            target_update=due[0],
+            target_update=due,
             healthy=healthy,
         )
-        masked_polyak(self.batch_norm_stats_target, self.batch_norm_stats, 1.0, update.applied & due[0])
+        masked_polyak(self.batch_norm_stats_target, self.batch_norm_stats, 1.0, update.applied & due)
         logged = sac_logged(ent_coef, critic_loss, update.actor_loss, ent_coef_loss)
         return StepOutput(healthy=update.applied, finite=update.finite, logged=logged, extra=healthy.new_zeros(0))
 
@@ -216,9 +215,9 @@ class _CompiledTD3(CompiledUpdate, TD3):
     def _optimizer_plans(self) -> list[AdamPlan]:
         return td3_plans(self.actor, self.critic)
 
-    def _step_flags(self, gradient_step: int) -> tuple[bool, ...]:
+    def _step_due(self, gradient_step: int) -> bool:
         # SB3's TD3 counts the update before the step: the actor and the targets every policy_delay updates
-        return ((self._n_updates + gradient_step + 1) % self.policy_delay == 0,)
+        return (self._n_updates + gradient_step + 1) % self.policy_delay == 0
 
     def _record_logged(self, logged: list[float]) -> None:
         # The critics' loss of every step; the actor's of the steps that updated it (its sum over their share)
@@ -260,13 +259,13 @@ class _CompiledTD3(CompiledUpdate, TD3):
             critic_loss=critic_loss,
             actor_loss=lambda: -self.critic.q1_forward(replay_data.observations, self.actor(replay_data.observations)).mean(),
             learning_rates=learning_rates,
-            actor_update=due[0],
+            actor_update=due,
             healthy=healthy,
         )
-        updated = update.applied & due[0]
+        updated = update.applied & due
         masked_polyak(self.critic_batch_norm_stats_target, self.critic_batch_norm_stats, 1.0, updated)
         masked_polyak(self.actor_batch_norm_stats_target, self.actor_batch_norm_stats, 1.0, updated)
-        share = due[0].to(critic_loss.dtype)
+        share = due.to(critic_loss.dtype)
         logged = th.stack([critic_loss.detach(), update.actor_loss.detach() * share, share])
         return StepOutput(healthy=update.applied, finite=update.finite, logged=logged, extra=healthy.new_zeros(0))
 
@@ -282,7 +281,6 @@ class MATD3(_CTDEAlgorithm, _CompiledTD3):
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {**TD3.policy_aliases, "CTDEPolicy": MATD3Policy}
     tunes_like: ClassVar[str | None] = "td3"
-    compiles_update: ClassVar[bool] = True
     __signature__ = _with_compile_update(inspect.signature(TD3))
 
     def _loss_optimizers(self) -> dict[str, th.optim.Optimizer]:
@@ -300,7 +298,6 @@ class MADDPG(_CTDEAlgorithm, _CompiledTD3, DDPG):
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {**DDPG.policy_aliases, "CTDEPolicy": MATD3Policy}
     tunes_like: ClassVar[str | None] = "ddpg"
-    compiles_update: ClassVar[bool] = True
     __signature__ = _with_compile_update(inspect.signature(DDPG))
 
     def _loss_optimizers(self) -> dict[str, th.optim.Optimizer]:

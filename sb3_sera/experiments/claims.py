@@ -96,12 +96,17 @@ class Claim:
             object.__setattr__(self, "family", PRIMARY_FAMILY if self.primary else EXPLORATORY_FAMILY)
 
     def reads(self, run: RunResult) -> bool:
-        """Whether the claim reads ``run`` (its seed within :attr:`seeds`)."""
-        return self.reads_seed(run.seed)
+        """Whether the claim reads ``run``: its task and budget, one of its arms, a seed within :attr:`seeds`."""
+        return self.reads_run(run.env_id, run.n_timesteps, run.variant, run.seed)
 
-    def reads_seed(self, seed: int) -> bool:
-        """Whether the claim reads runs of ``seed`` (within :attr:`seeds`)."""
-        return self.seeds is None or self.seeds[0] <= seed <= self.seeds[1]
+    def reads_run(self, env_id: Any, n_timesteps: Any, variant: str, seed: int) -> bool:
+        """Whether the claim reads a run of ``variant`` on ``env_id`` at ``n_timesteps`` steps with ``seed``."""
+        seeds = self.seeds or (seed, seed)
+        return (
+            (env_id, n_timesteps) == (self.task, self.n_timesteps)
+            and variant in (self.arm, self.baseline)
+            and seeds[0] <= seed <= seeds[1]
+        )
 
     def shares_runs(self, other: "Claim") -> bool:
         """Whether the two claims can read a run in common (a variant, task, budget and seed they both read)."""

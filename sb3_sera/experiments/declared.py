@@ -81,7 +81,7 @@ def seen_before_lines(results: Sequence[ClaimResult], runs: Sequence[RunResult],
         counts = []
         for variant, now in ((claim.arm, len(result.arm_values)), (claim.baseline, len(result.baseline_values))):
             then = sum(
-                1 for run in runs if run.variant == variant and _run_name(run, folder) in declared.runs and _reads(claim, run)
+                1 for run in runs if run.variant == variant and _run_name(run, folder) in declared.runs and claim.reads(run)
             )
             counts.append(f"{then} of {now}")
         rows.append(f"| {claim.id} | {declared.commit} ({declared.date}) | {counts[0]} | {counts[1]} | {after} |")
@@ -93,10 +93,6 @@ def seen_before_lines(results: Sequence[ClaimResult], runs: Sequence[RunResult],
         "|---|---|---|---|---|",
         *rows,
     ]
-
-
-def _reads(claim: Claim, run: RunResult) -> bool:
-    return (run.env_id, run.n_timesteps) == (claim.task, claim.n_timesteps) and claim.reads(run)
 
 
 def _after(claim: Claim, runs: Sequence[RunResult]) -> str:

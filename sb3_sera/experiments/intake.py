@@ -114,13 +114,7 @@ def claims_entered(claims: Sequence[Claim], args: dict[str, Any]) -> list[str]:
     """The ids of the ``claims`` that a run recorded as ``args`` (its ``args.yml``) enters: same task, budget, an arm
     or the baseline as its variant, and a seed the claim reads."""
     variant, seed = str(args.get("variant") or args.get("algo")), int(args.get("seed", -1))
-    return [
-        claim.id
-        for claim in claims
-        if (claim.task, claim.n_timesteps) == (args.get("env"), args.get("n_timesteps"))
-        and variant in (claim.arm, claim.baseline)
-        and claim.reads_seed(seed)
-    ]
+    return [claim.id for claim in claims if claim.reads_run(args.get("env"), args.get("n_timesteps"), variant, seed)]
 
 
 def _unclaimed_refusal(

@@ -10,12 +10,6 @@ from sb3_sera.experiments.claims import Claim
 from sb3_sera.experiments.records import RunResult
 
 
-def _reads(claim: Claim, run: RunResult) -> bool:
-    """Whether ``claim`` reads ``run`` (one of its arms, at its task, budget and seeds)."""
-    arms = (claim.arm, claim.baseline)
-    return run.variant in arms and (run.env_id, run.n_timesteps) == (claim.task, claim.n_timesteps) and claim.reads(run)
-
-
 def held_back(claims: Sequence[Claim] | None, runs: Sequence[RunResult]) -> tuple[list[RunResult], list[str]]:
     """
     ``runs`` without those read by an interim claim (one with ``planned`` runs an arm that one of its arms lacks), and
@@ -25,7 +19,7 @@ def held_back(claims: Sequence[Claim] | None, runs: Sequence[RunResult]) -> tupl
     for claim in claims or ():
         if not claim.planned:
             continue
-        read = [run for run in runs if _reads(claim, run)]
+        read = [run for run in runs if claim.reads(run)]
         counts = {arm: sum(run.variant == arm for run in read) for arm in (claim.arm, claim.baseline)}
         if read and min(counts.values()) < claim.planned:
             kept = [run for run in kept if run not in read]

@@ -18,8 +18,8 @@ between the same lines); :func:`results_block` and :func:`readme_block` are what
 
 import os
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 from sb3_sera.experiments.claims import Claim, ClaimResult, default_claims, evaluate, load_claims
 from sb3_sera.experiments.claims_text import claims_section, family_sizes
@@ -28,7 +28,7 @@ from sb3_sera.experiments.defaults import DOCS_DIR, LEDGER_DIR, LEDGER_REPS
 from sb3_sera.experiments.identity import IDENTITY_CHECK, identity_lines, load_code_hashes
 from sb3_sera.experiments.interim import held_back
 from sb3_sera.experiments.records import RunResult, env_name, read_record
-from sb3_sera.experiments.report import Skipped, group_runs, load_runs, section_table, write_report
+from sb3_sera.experiments.report import RunGroup, Skipped, group_runs, load_runs, section_table, write_report
 from sb3_sera.experiments.report.tables import resumed_lines
 from sb3_sera.experiments.report.write import section_claims
 
@@ -66,13 +66,45 @@ def study_claims(env_id: str, n_timesteps: int, ledger: str | Path | None = None
     claim adjusted with all the ledger declares (its Holm family, every exploratory claim), so that a task's verdicts
     and q-values are the results page's (None where the ledger declares no claims: see :func:`ledger_claims`).
     """
-    folder = find_ledger() if ledger is None else ledger
-    claims = ledger_claims(folder)
-    if claims is None:
+    results = read_ledger(find_ledger() if ledger is None else ledger)
+    if results.claims is None:
         return None
-    runs, _, _ = published_runs(folder)
-    decided = evaluate(claims, group_runs(runs))
-    return [result for result in decided if (result.claim.task, result.claim.n_timesteps) == (env_id, n_timesteps)]
+    return [r for r in results.decided if (r.claim.task, r.claim.n_timesteps) == (env_id, n_timesteps)]
+
+
+@dataclass(frozen=True)
+class LedgerResults:
+    """
+    What the ledger's pages show, read and decided once (:func:`read_ledger`): the report, the results page's block
+    and the README's block are each written from it.
+    """
+
+    ledger: Path
+    #: The finished runs the pages show: every one but those an interim claim holds back
+    runs: list[RunResult]
+    #: The folders left out as unreadable, with their reasons
+    skipped: list[Skipped]
+    #: A line per claim that holds runs back
+    held: list[str]
+    groups: list[RunGroup]
+    #: The declared claims (None: the ledger declares none, and each section's default claims are decided)
+    claims: list[Claim] | None
+    decided: list[ClaimResult]
+    code_hashes: dict[str, dict[str, str]] | None
+
+
+def read_ledger(ledger: str | Path = LEDGER_DIR) -> LedgerResults:
+    """The ledger's runs loaded, its ``claims.yml`` read and its claims decided, once (:class:`LedgerResults`)."""
+    runs, skipped = load_runs([ledger])
+    claims = ledger_claims(ledger)
+    shown, held = held_back(claims, runs)
+    groups = group_runs(shown)
+    decided = evaluate(claims if claims is not None else default_claims(groups), groups)
+    return LedgerResults(Path(ledger), shown, list(skipped), held, groups, claims, decided, load_code_hashes(ledger))
+
+
+def _read(ledger: "str | Path | LedgerResults") -> LedgerResults:
+    return ledger if isinstance(ledger, LedgerResults) else read_ledger(ledger)
 
 
 def published_runs(ledger: str | Path = LEDGER_DIR) -> tuple[list[RunResult], list[Skipped], list[str]]:
@@ -85,9 +117,9 @@ def published_runs(ledger: str | Path = LEDGER_DIR) -> tuple[list[RunResult], li
     return shown, skipped, held
 
 
-def _sections(runs: Sequence[RunResult]) -> dict[tuple[str, int], list[Any]]:
-    sections: dict[tuple[str, int], list[Any]] = {}
-    for group in group_runs(runs):
+def _sections(groups: Sequence[RunGroup]) -> dict[tuple[str, int], list[RunGroup]]:
+    sections: dict[tuple[str, int], list[RunGroup]] = {}
+    for group in groups:
         sections.setdefault((group.env_id, group.n_timesteps), []).append(group)
     return sections
 
@@ -98,21 +130,20 @@ def ledger_claims(ledger: str | Path = LEDGER_DIR) -> list[Claim] | None:
     return load_claims(path) if path.exists() else None
 
 
-def results_block(ledger: str | Path = LEDGER_DIR, reps: int = LEDGER_REPS) -> str:
+def results_block(ledger: str | Path | LedgerResults = LEDGER_DIR, reps: int = LEDGER_REPS) -> str:
     """
-    The results page's generated block, from the ledger alone: the primary claims with their verdicts, then per task
-    and budget the report's table and a count of the exploratory claims' verdicts, with links to ``report.md`` (in
-    the page's folder), which holds the exploratory claims and the figures.
+    The results page's generated block, from the ledger alone (a folder, or :func:`read_ledger`'s reading of one):
+    the primary claims with their verdicts, then per task and budget the report's table and a count of the
+    exploratory claims' verdicts, with links to ``report.md`` (in the page's folder), which holds the exploratory
+    claims and the figures.
     """
-    runs, skipped, held = published_runs(ledger)
+    results = _read(ledger)
+    runs, skipped, held, decided = results.runs, results.skipped, results.held, results.decided
     lines = [BEGIN, ""]
     if not runs:
         lines += ["The ledger holds no finished run yet.", ""]
     if held:
         lines += ["Held back from every table, figure and claim until the claim has its planned runs:", "", *held, ""]
-    groups = group_runs(runs)
-    hashes = load_code_hashes(ledger)
-    decided = _decided(ledger, groups)
     if family_sizes(decided):
         primary = [r for r in decided if r.claim.primary]
         lines += [*claims_section(primary), ""]
@@ -121,10 +152,10 @@ def results_block(ledger: str | Path = LEDGER_DIR, reps: int = LEDGER_REPS) -> s
             f"`{CLAIMS_FILE}`, the runs of each arm it reads that the ledger held then, and the claim on the runs added "
             "after alone):",
             "",
-            *seen_before_lines(primary, runs, ledger),
+            *seen_before_lines(primary, runs, results.ledger),
             "",
         ]
-    for (env_id, budget), section in _sections(runs).items():
+    for (env_id, budget), section in _sections(results.groups).items():
         commits = sorted({_commit(run) for group in section for run in group.runs})
         lines += [
             f"**{env_id}, {budget:,} steps** (code at {', '.join(f'`{c}`' for c in commits)}; figures in "
@@ -135,6 +166,7 @@ def results_block(ledger: str | Path = LEDGER_DIR, reps: int = LEDGER_REPS) -> s
         ]
         resumed = resumed_lines(section)
         lines += [*resumed, ""] if resumed else []
+        hashes = results.code_hashes
         identity = identity_lines(section, hashes) if hashes is not None else []
         if identity:
             lines += [f"Code identity of groups run at several commits (`results/code_hashes.yml`: {IDENTITY_CHECK}):", ""]
@@ -146,7 +178,8 @@ def results_block(ledger: str | Path = LEDGER_DIR, reps: int = LEDGER_REPS) -> s
             lines += [f"Exploratory claims on these runs ({counts}): [report.md](report.md).", ""]
     if skipped:
         # Named inside the ledger, never by the absolute path of the machine that made the block
-        names = [f"{Path(ledger).name}/{Path(s.folder).relative_to(ledger).as_posix()}" for s in skipped]
+        folder = results.ledger
+        names = [f"{folder.name}/{Path(s.folder).relative_to(folder).as_posix()}" for s in skipped]
         lines += [
             "Left out of the ledger's report:",
             "",
@@ -157,20 +190,19 @@ def results_block(ledger: str | Path = LEDGER_DIR, reps: int = LEDGER_REPS) -> s
     return "\n".join(lines)
 
 
-def readme_block(ledger: str | Path = LEDGER_DIR, docs: str = DOCS_DIR) -> str:
+def readme_block(ledger: str | Path | LedgerResults = LEDGER_DIR, docs: str = DOCS_DIR) -> str:
     """
-    The README's generated headline, from the ledger alone: the learning curves of the task the primary claims are
-    about (else the first task's), the primary claims with their verdicts, and links to the results page and the
-    report in ``docs`` (a path from the README's folder).
+    The README's generated headline, from the ledger alone (a folder, or :func:`read_ledger`'s reading of one): the
+    learning curves of the task the primary claims are about (else the first task's), the primary claims with their
+    verdicts, and links to the results page and the report in ``docs`` (a path from the README's folder).
     """
-    runs, _, _ = published_runs(ledger)
+    results = _read(ledger)
     lines = [BEGIN, ""]
-    if not runs:
+    if not results.runs:
         lines += ["The ledger holds no finished run yet.", ""]
     else:
-        decided = _decided(ledger, group_runs(runs))
-        primary = [result for result in decided if result.claim.primary]
-        sections = list(_sections(runs))
+        primary = [result for result in results.decided if result.claim.primary]
+        sections = list(_sections(results.groups))
         env_id, budget = (primary[0].claim.task, primary[0].claim.n_timesteps) if primary else sections[0]
         if (env_id, budget) not in sections:
             env_id, budget = sections[0]
@@ -187,12 +219,6 @@ def readme_block(ledger: str | Path = LEDGER_DIR, docs: str = DOCS_DIR) -> str:
         END,
     ]
     return "\n".join(lines)
-
-
-def _decided(ledger: str | Path, groups: Sequence[Any]) -> list[ClaimResult]:
-    """The ledger's claims (or each section's default claims, all exploratory) decided on ``groups``."""
-    claims = ledger_claims(ledger)
-    return evaluate(claims if claims is not None else default_claims(groups), groups)
 
 
 def _commit(run: RunResult) -> str:
@@ -232,24 +258,25 @@ def write_results(
 
     :return: the report and the README
     """
-    runs, skipped, _ = published_runs(ledger)
-    if not runs:
+    results = read_ledger(ledger)
+    if not results.runs:
         raise ValueError(f"{ledger}: the ledger holds no finished run")
     docs = Path(docs)
     for stale in docs.glob("*.png"):
         stale.unlink()
     report = write_report(
-        runs,
+        results.runs,
         docs,
-        skipped,
+        results.skipped,
         reps=reps,
         sources=[str(ledger)],
-        claims=ledger_claims(ledger),
-        code_hashes=load_code_hashes(ledger),
+        claims=results.claims,
+        code_hashes=results.code_hashes,
+        claim_results=results.decided,
     )
     page = docs / RESULTS_PAGE
-    block = results_block(ledger, reps)
+    block = results_block(results, reps)
     page.write_text(replace_block(page.read_text(), block, str(page)) if page.exists() else f"# Results\n\n{block}\n")
     readme = Path(readme)
-    readme.write_text(replace_block(readme.read_text(), readme_block(ledger, docs.as_posix())))
+    readme.write_text(replace_block(readme.read_text(), readme_block(results, docs.as_posix())))
     return report, readme

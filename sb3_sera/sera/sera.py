@@ -150,7 +150,6 @@ class SERASAC(NamedRuns, Capabilities, CompiledUpdate, SAC):
         "CTDEPolicy": SERACTDEPolicy,
     }
     tuning: ClassVar[TuningSpace | None] = SERASAC_TUNING
-    compiles_update: ClassVar[bool] = True
     soft_q_critics: ClassVar[bool] = True
     own_td_targets: ClassVar[bool] = True
     per_critic_rates: ClassVar[bool] = True
@@ -459,12 +458,12 @@ class SERASAC(NamedRuns, Capabilities, CompiledUpdate, SAC):
             critic_loss=critic.critic_loss,
             actor_loss=actor_loss,
             learning_rates=learning_rates,
-            target_update=due[0],
+            target_update=due,
             healthy=healthy,
             checked=[th.isfinite(critic.step_size.learning_rates).all() if self.adaptive_critic_lr else healthy],
             critic_rates=group_rates,
         )
-        masked_polyak(self.batch_norm_stats_target, self.batch_norm_stats, 1.0, update.applied & due[0])
+        masked_polyak(self.batch_norm_stats_target, self.batch_norm_stats, 1.0, update.applied & due)
         logged = sac_logged(ent_coef, critic.critic_loss, update.actor_loss, ent_coef_loss)
         extra = th.cat([critic_rates, diagnostics(critic, target_entropy)])
         return StepOutput(healthy=update.applied, finite=update.finite, logged=logged, extra=extra)

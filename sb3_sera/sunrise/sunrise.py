@@ -140,7 +140,6 @@ class SUNRISE(NamedRuns, Capabilities, CompiledUpdate, OffPolicyAlgorithm):
 
     multi_agent: ClassVar[bool] = False
     tuning: ClassVar[TuningSpace | None] = SUNRISE_TUNING
-    compiles_update: ClassVar[bool] = True
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpPolicy": MlpPolicy}
     policy: SUNRISEPolicy
@@ -443,7 +442,7 @@ class SUNRISE(NamedRuns, Capabilities, CompiledUpdate, OffPolicyAlgorithm):
             critic_loss=losses.critic_loss,
             actor_loss=partial(self._actor_loss, replay_data.observations, losses),
             learning_rates=learning_rates,
-            target_update=due[0],
+            target_update=due,
             healthy=healthy,
         )
         logged = th.stack(list(self._logged(losses, update.actor_loss).values()))

@@ -3,16 +3,14 @@ The masked Adam and Polyak updates of a compiled step against torch's own by han
 its random draws, and the compiled actor ``learn()`` acts through.
 """
 
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
-import numpy as np
 import pytest
 import torch as th
 from torch._inductor.fx_passes.control_dependencies import control_deps
 from torch._subclasses.fake_tensor import DataDependentOutputException, FakeTensorMode
 from torch.fx.experimental.proxy_tensor import make_fx
 
-from sb3_sera import IET, MASAC, MATD3, SERASAC, SUNRISE
 from sb3_sera.common.compiled import (
     AdamPlan,
     adam,
@@ -24,7 +22,6 @@ from sb3_sera.common.compiled import (
     step_options,
 )
 from sb3_sera.common.compiled.graph_passes import KeepRandomOrder
-from tests.helpers import CTDE_TASK, ENV_ID
 
 
 @pytest.mark.parametrize(
@@ -227,42 +224,3 @@ def test_a_step_compiled_where_the_locality_pass_moves_draws_draws_as_eager(monk
         th.manual_seed(5)
         result = compiled(x)
     th.testing.assert_close(result, _used_in_reverse(x, *(reversed(drawn) if locality else drawn)))
-
-
-def _actions(algorithm: type, policy: str, env_id: str, compile_action: bool | None, **kwargs: Any) -> tuple[Any, int]:
-    """
-    Three of ``learn()``'s actions (``_sample_action``) of a fresh model, and how many the compiled actor took
-    (``compile_action`` None: the model's default).
-    """
-    model = algorithm(policy, env_id, seed=0, compile_update=True, **kwargs)
-    if compile_action is not None:
-        model.compile_action = compile_action
-    model._setup_learn(10)
-    calls = []
-    actor = model._compiled_action
-    model._compiled_action = lambda *args: calls.append(args) or actor(*args)
-    th.manual_seed(3)
-    actions = np.stack([model._sample_action(learning_starts=0, n_envs=1)[0] for _ in range(3)])
-    assert "_predict" not in vars(model.policy)  # the compiled actor is the policy's only while acting
-    return actions, len(calls)
-
-
-@pytest.mark.parametrize(
-    "algorithm, policy, env_id, kwargs",
-    [
-        (SERASAC, "MlpPolicy", ENV_ID, dict(policy_kwargs=dict(net_arch=[8]))),
-        (SUNRISE, "MlpPolicy", ENV_ID, dict(n_members=3, policy_kwargs=dict(net_arch=[8]))),
-        (MASAC, "CTDEPolicy", CTDE_TASK, dict(policy_kwargs=dict(net_arch=[8]))),
-        # IET's actor out of CI: two minutes of compiling on a cold cache; CI traces its network in IET's step
-        # (tests/common/test_cuda_graphs.py), and acting through it is the other algorithms' code
-        pytest.param(IET, "CTDEPolicy", CTDE_TASK, dict(policy_kwargs=dict(net_arch=[8])), marks=pytest.mark.slow),
-        (MATD3, "CTDEPolicy", CTDE_TASK, dict(policy_kwargs=dict(net_arch=[8]), action_noise=None)),
-    ],
-)
-def test_learn_acts_through_the_compiled_actor_as_the_eager_one(algorithm, policy, env_id, kwargs):
-    eager, eager_calls = _actions(algorithm, policy, env_id, compile_action=False, **kwargs)
-    compiled, compiled_calls = _actions(algorithm, policy, env_id, compile_action=True, **kwargs)
-    assert (eager_calls, compiled_calls) == (0, 3)
-    np.testing.assert_allclose(compiled, eager, atol=1e-6)
-    # By default a model acts eagerly (the compiled actor measured slower on a GPU, docs/speed.md)
-    assert _actions(algorithm, policy, env_id, compile_action=None, **kwargs)[1] == 0

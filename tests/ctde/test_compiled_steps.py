@@ -14,7 +14,7 @@ import torch as th
 from stable_baselines3.common.logger import configure
 
 from sb3_sera import IET, MADDPG, MASAC, MATD3
-from sb3_sera.common.compiled import count_graph_breaks, cuda_graph_blockers
+from sb3_sera.common.compiled import CompiledUpdate, count_graph_breaks, cuda_graph_blockers
 from tests.helpers import (
     COMPILED_CTDE_TASK,
     COMPILED_GROUP,
@@ -63,7 +63,7 @@ def test_the_compiled_step_equals_sb3_eager_one_and_saves(ent_coef, tmp_path):
 def test_iet_compiles_as_masac_does(tmp_path):
     # IET is MASAC with soft-modular actors that read per-episode latents: the same compiled step. Each agent's actor
     # is a network of its own in the graph
-    assert IET.compiles_update and "compile_update" in inspect.signature(IET).parameters
+    assert issubclass(IET, CompiledUpdate) and "compile_update" in inspect.signature(IET).parameters
     eager, compiled, _ = assert_compiled_equals_eager(partial(build, algorithm=IET, env=CTDE_TASK), SETTINGS["batch_size"])
     # On a fixed buffer only: IET's training amplifies any difference (two eager models 5e-6 apart part by 1e-2 in 100
     # steps), so in learn() rounding alone parts the two by 1e-2 (docs/speed.md)
@@ -127,7 +127,7 @@ def test_td3s_compiled_step_equals_sb3_eager_one(algorithm, tmp_path):
     eager, compiled, _ = assert_compiled_equals_eager(
         partial(build, algorithm=algorithm), SETTINGS["batch_size"], logs=("train/critic_loss",)
     )
-    assert compiled._n_updates == eager._n_updates == 5 and algorithm.compiles_update
+    assert compiled._n_updates == eager._n_updates == 5 and issubclass(algorithm, CompiledUpdate)
     batch = compiled.replay_buffer.sample(SETTINGS["batch_size"])
     before = snapshot(compiled, optimizers=True)
     assert count_graph_breaks(compiled, compiled._gradient_step_graph, batch) == (1, 0)

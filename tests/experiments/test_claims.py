@@ -4,6 +4,7 @@ import json
 import shutil
 import subprocess
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -405,3 +406,11 @@ def test_what_was_seen_before_a_claim_comes_from_git(tmp_path):
     assert row.endswith("| 2 of 6 | 2 of 6 | 4 against 4: -2.5 [-3.06, -1.94], p 0.0286 |")
     assert missing == "| unsaved | not committed, or no git history | | | |"
     assert declaration(tmp_path.parent, "later") is None  # no repository there
+
+
+def test_a_claim_reads_the_runs_of_its_task_budget_arms_and_seeds():
+    claim = claims.Claim("c", "HalfCheetah-v5", 300, "auc", "serasac", "sac", "higher", seeds=(0, 4))
+    run = SimpleNamespace(env_id="HalfCheetah-v5", n_timesteps=300, variant="sac", seed=4)
+    assert claim.reads(run)
+    for change in ({"env_id": "Ant-v5"}, {"n_timesteps": 600}, {"variant": "ace"}, {"seed": 5}):
+        assert not claim.reads(SimpleNamespace(**{**vars(run), **change})), change

@@ -11,10 +11,8 @@ import pathlib
 from collections.abc import Callable, Sequence
 from typing import Any, ClassVar, NamedTuple, TypeVar
 
-import numpy as np
 import torch as th
 from stable_baselines3.common.buffers import ReplayBuffer
-from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from torch.utils import _pytree
 
@@ -64,9 +62,7 @@ class CompiledUpdate(OffPolicyAlgorithm):
     first such step. ``read_every_train = True`` reads after every ``train()`` call instead, as does a ``train()``
     called outside ``learn()``.
 
-    The action: with ``compile_action = True``, ``learn()`` acts through the policy's ``_predict`` compiled in the same
-    mode (the action the one value read back); by default it acts eagerly, which measured faster on a GPU
-    (``docs/speed.md``).
+    The action: ``learn()`` acts eagerly, as SB3 does (a compiled actor measured slower on a GPU: ``docs/speed.md``).
 
     An algorithm supplies ``_gradient_step_graph`` and ``_optimizer_plans``, calls ``_setup_compiled_update`` at the
     end of its ``_setup_model`` and ``_train_compiled`` from its ``train`` where ``_compiled_step`` is set; the rest
@@ -81,10 +77,6 @@ class CompiledUpdate(OffPolicyAlgorithm):
     _adam_plans: list[AdamPlan]
     #: Read the steps' values back after every ``train()`` call, not once per log interval
     read_every_train: bool = False
-    #: Act in ``learn()`` through the compiled actor (with ``"reduce-overhead"``, a CUDA graph); off by default: eager
-    #: acting measured faster on a GPU and within a few percent on a CPU (``docs/speed.md``)
-    compile_action: bool = False
-    _compiled_action: Callable[..., th.Tensor] | None
     #: Whether ``learn()`` is running with its reads deferred to the log interval
     _deferring_reads: bool = False
     #: The steps run and not yet read: their outputs, and where each ``train()`` call began (its first update's
@@ -122,7 +114,7 @@ class CompiledUpdate(OffPolicyAlgorithm):
 
     def _setup_compiled_update(self) -> None:
         """Compile the gradient step and make its optimizers' plans, where ``compile_update`` asks for it."""
-        self._compiled_step, self._compiled_action, self._adam_plans = None, None, []
+        self._compiled_step, self._adam_plans = None, []
         self._pending_outputs, self._pending_calls, self._pending_healthy = [], [], None
         if not self.compile_update:
             return
@@ -134,7 +126,6 @@ class CompiledUpdate(OffPolicyAlgorithm):
         self.compile_update = available_mode(self.compile_update, self.device)
         self._adam_plans = self._optimizer_plans()
         self._compiled_step = compile_step(self._gradient_step_graph, self.compile_update)
-        self._compiled_action = compile_step(self._action_graph, self.compile_update)
 
     def _optimizer_plans(self) -> list[AdamPlan]:
         """The Adam plans of the optimizers the step updates, in the order of its ``learning_rates`` and ``states``."""
@@ -155,50 +146,22 @@ class CompiledUpdate(OffPolicyAlgorithm):
 
         :param replay_data: the step's batch (``_sample_batch``)
         :param learning_rates: ``_step_learning_rates``
-        :param due: the step's flags (``_step_flags``), a boolean tensor
+        :param due: whether the step's periodic update is due (``_step_due``), a boolean scalar tensor
         :param healthy: whether every earlier step of the ``train()`` call had only finite values
         :param states: each plan's Adam state (:meth:`.AdamPlan.state`), in ``_adam_plans`` order
         """
         raise NotImplementedError
 
-    def _action_graph(self, observation: Any, deterministic: bool = False) -> th.Tensor:
-        """The policy's ``_predict`` as a graph: the action ``learn()`` takes, on the model's device."""
-        return type(self.policy)._predict(self.policy, observation, deterministic=deterministic)
-
-    def _acting_compiled(self) -> bool:
-        """Whether ``learn()`` acts through the compiled actor (``compile_action``)."""
-        return self._compiled_action is not None and self.compile_action
-
-    def _compiled_predict(self, observation: Any, deterministic: bool = False) -> th.Tensor:
-        """The policy's ``_predict`` through the compiled actor (``_acting_compiled``)."""
-        assert self._compiled_action is not None
-        if self.compile_update == "reduce-overhead":
-            th.compiler.cudagraph_mark_step_begin()
-        return self._compiled_action(observation, deterministic)
-
-    def _sample_action(
-        self, learning_starts: int, action_noise: ActionNoise | None = None, n_envs: int = 1
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """SB3's ``_sample_action``, the policy's action computed by the compiled actor where ``_acting_compiled``."""
-        if not self._acting_compiled():
-            return super()._sample_action(learning_starts, action_noise, n_envs)
-        # SB3's predict (and an algorithm's own) around the policy's _predict: the compiled one for this action only
-        setattr(self.policy, "_predict", self._compiled_predict)  # noqa: B010 (an instance's method, set and removed)
-        try:
-            return super()._sample_action(learning_starts, action_noise, n_envs)
-        finally:
-            delattr(self.policy, "_predict")
-
     def _step_learning_rates(self) -> th.Tensor:
         """The step's ``learning_rates``: each plan's optimizer's current rate, in the plans' order."""
         return plans_learning_rates(self._adam_plans, self.device)
 
-    def _step_flags(self, gradient_step: int) -> tuple[bool, ...]:
+    def _step_due(self, gradient_step: int) -> bool:
         """
-        What is due after ``gradient_step`` of this ``train()`` call, the step's ``due``: whether the target networks
-        are updated (:func:`~sb3_sera.common.off_policy.target_update_due`).
+        Whether the periodic update is due after ``gradient_step`` of this ``train()`` call, the step's ``due``: by
+        default the target networks' (:func:`~sb3_sera.common.off_policy.target_update_due`).
         """
-        return (target_update_due(self._n_updates, gradient_step, self.target_update_interval),)
+        return target_update_due(self._n_updates, gradient_step, self.target_update_interval)
 
     def _sample_batch(self, batch_size: int) -> Any:
         """A replayed batch for one step."""
@@ -285,23 +248,21 @@ class CompiledUpdate(OffPolicyAlgorithm):
     def _run_compiled_steps(self, gradient_steps: int, batch_size: int) -> list[StepOutput]:
         """
         Run the compiled step ``gradient_steps`` times, on the batches of ``_sample_batches``, without reading
-        anything back: each step gets the Adam states, the learning rates, its flags and the previous step's
+        anything back: each step gets the Adam states, the learning rates, its ``due`` flag and the previous step's
         ``healthy`` (after a non-finite value nothing changes, until the read). With CUDA graphs each replay
         overwrites the previous one's outputs: they are copied.
         """
         assert self._compiled_step is not None
         states = [plan.state() for plan in self._adam_plans]
         learning_rates = self._step_learning_rates()
-        flags: dict[tuple[bool, ...], th.Tensor] = {}
+        flags = {due: th.tensor(due, device=self.device) for due in (False, True)}
         healthy = self._pending_healthy
         if healthy is None:
             healthy = th.ones((), dtype=th.bool, device=self.device)
         outputs = []
         for gradient_step, batch in enumerate(self._sample_batches(gradient_steps, batch_size)):
-            due = self._step_flags(gradient_step)
-            if due not in flags:
-                flags[due] = th.tensor(due, device=self.device)
-            arguments = dict(learning_rates=learning_rates, due=flags[due], healthy=healthy, states=states)
+            due = flags[self._step_due(gradient_step)]
+            arguments = dict(learning_rates=learning_rates, due=due, healthy=healthy, states=states)
             if self.compile_update == "reduce-overhead":
                 th.compiler.cudagraph_mark_step_begin()
                 output = _pytree.tree_map(th.clone, watching_cuda_graphs(self._compiled_step, batch, arguments))
@@ -313,11 +274,10 @@ class CompiledUpdate(OffPolicyAlgorithm):
         return outputs
 
     def _probe_arguments(self) -> dict[str, Any]:
-        """Arguments of one step that changes nothing (``healthy`` false), every flag due: to trace or check the step."""
-        flags = self._step_flags(0)
+        """Arguments of one step that changes nothing (``healthy`` false), its update due: to trace or check the step."""
         return dict(
             learning_rates=self._step_learning_rates(),
-            due=th.ones(len(flags), dtype=th.bool, device=self.device),
+            due=th.tensor(True, device=self.device),
             healthy=th.tensor(False, device=self.device),
             states=[plan.state() for plan in self._adam_plans],
         )
@@ -326,7 +286,6 @@ class CompiledUpdate(OffPolicyAlgorithm):
         return [
             *super()._excluded_save_params(),
             "_compiled_step",
-            "_compiled_action",
             "_adam_plans",
             "_pending_outputs",
             "_pending_calls",
