@@ -212,8 +212,8 @@ def critic_diagnostics(model: SAC, batch_size: int) -> dict[str, np.ndarray]:
 
 def sac_td_targets(model: SAC, replay_data: ReplayBufferSamples) -> tuple[th.Tensor, th.Tensor]:
     """
-    SB3's SAC target for a replayed batch, ``y = r + gamma (1 - d) (min_k Qbar_k(s', a') - alpha log pi(a'|s'))`` with
-    ``a'`` drawn from the actor, and the online critics' values ``Q_k(s, a)``: ``(S, 1)`` and ``(S, K)``.
+    SB3's SAC target for a replayed batch (:func:`~sb3_sera.common.targets.sac_td_target`, at the model's entropy
+    coefficient) and the online critics' values ``Q_k(s, a)``: ``(S, 1)`` and ``(S, K)``.
     """
     ent_coef = th.exp(model.log_ent_coef.detach()) if model.log_ent_coef is not None else model.ent_coef_tensor
     target_q_values = sac_td_target(model.actor, model.critic_target, replay_data, ent_coef, model.gamma)

@@ -95,9 +95,8 @@ class LedgerResults:
 
 def read_ledger(ledger: str | Path = LEDGER_DIR) -> LedgerResults:
     """The ledger's runs loaded, its ``claims.yml`` read and its claims decided, once (:class:`LedgerResults`)."""
-    runs, skipped = load_runs([ledger])
     claims = ledger_claims(ledger)
-    shown, held = held_back(claims, runs)
+    shown, skipped, held = _published(ledger, claims)
     groups = group_runs(shown)
     decided = evaluate(claims if claims is not None else default_claims(groups), groups)
     return LedgerResults(Path(ledger), shown, list(skipped), held, groups, claims, decided, load_code_hashes(ledger))
@@ -112,9 +111,13 @@ def published_runs(ledger: str | Path = LEDGER_DIR) -> tuple[list[RunResult], li
     The ledger's finished runs its pages show: every one but those an interim claim holds back
     (:func:`~sb3_sera.experiments.interim.held_back`); the runs left out as unreadable; a line per holding claim.
     """
+    return _published(ledger, ledger_claims(ledger))
+
+
+def _published(ledger: str | Path, claims: Sequence[Claim] | None) -> tuple[list[RunResult], list[Skipped], list[str]]:
     runs, skipped = load_runs([ledger])
-    shown, held = held_back(ledger_claims(ledger), runs)
-    return shown, skipped, held
+    shown, held = held_back(claims, runs)
+    return shown, list(skipped), held
 
 
 def _sections(groups: Sequence[RunGroup]) -> dict[tuple[str, int], list[RunGroup]]:

@@ -91,11 +91,6 @@ class AdamPlan:
             # compiled again finds its step in Inductor's cache
             for tensor in [*self.params, *(value for state in self._held for value in state)]:
                 th._dynamo.mark_static_address(tensor, guard=False)
-            if any(param.device.type != "cpu" for param in self.params):
-                # torch's own step (after loading without compile_update) accepts a device step when capturable
-                for group in self.optimizer.param_groups:
-                    group["capturable"] = not group.get("fused", False)
-            return self._held
         for param, held in zip(self.params, self._held, strict=True):
             state = self.optimizer.state[param]
             current = tuple(state.get(key) for key in ADAM_KEYS)
@@ -109,7 +104,9 @@ class AdamPlan:
                         kept.copy_(value)
                     state[key] = kept
         if any(param.device.type != "cpu" for param in self.params):
-            for group in self.optimizer.param_groups:  # a loaded group brings its own flags
+            # torch's own step (after loading without compile_update) accepts a device step when capturable; a loaded
+            # group brings its own flags
+            for group in self.optimizer.param_groups:
                 group["capturable"] = not group.get("fused", False)
         return self._held
 

@@ -255,14 +255,16 @@ class CompiledUpdate(OffPolicyAlgorithm):
         assert self._compiled_step is not None
         states = [plan.state() for plan in self._adam_plans]
         learning_rates = self._step_learning_rates()
-        flags = {due: th.tensor(due, device=self.device) for due in (False, True)}
+        flags: dict[bool, th.Tensor] = {}
         healthy = self._pending_healthy
         if healthy is None:
             healthy = th.ones((), dtype=th.bool, device=self.device)
         outputs = []
         for gradient_step, batch in enumerate(self._sample_batches(gradient_steps, batch_size)):
-            due = flags[self._step_due(gradient_step)]
-            arguments = dict(learning_rates=learning_rates, due=due, healthy=healthy, states=states)
+            due = self._step_due(gradient_step)
+            if due not in flags:
+                flags[due] = th.tensor(due, device=self.device)
+            arguments = dict(learning_rates=learning_rates, due=flags[due], healthy=healthy, states=states)
             if self.compile_update == "reduce-overhead":
                 th.compiler.cudagraph_mark_step_begin()
                 output = _pytree.tree_map(th.clone, watching_cuda_graphs(self._compiled_step, batch, arguments))
