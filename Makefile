@@ -11,20 +11,21 @@ TORCH_INDEX_URL ?=
 
 .PHONY: install demo test test-slow lint type bench docs notebooks clean
 
-$(STAMP): pyproject.toml constraints.txt
+$(STAMP): pyproject.toml study/pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -c constraints.txt torch $(if $(TORCH_INDEX_URL),--extra-index-url $(TORCH_INDEX_URL))
-	$(PY) -m pip install --quiet -c constraints.txt -e ".[dev,distributed,plots,docs]"
+	$(PY) -m pip install --quiet -c constraints.txt -e ".[extra,plots,dev,docs]" -e "./study[distributed,dev]"
 	touch $(STAMP)
 
 install: $(STAMP)
 
 # The main job: SERASAC against stock SAC on a small task, a table and a learning-curve plot
 demo: install
-	$(PY) -m sb3_sera compare
+	$(VENV)/bin/sb3-sera compare
 
-# The test suite without the long learning checks (what CI runs), in TEST_WORKERS pytest-xdist processes with one
+# The test suite without the long learning checks (what CI runs): the library's (tests/) and the study's
+# (study/tests/), in TEST_WORKERS pytest-xdist processes with one
 # torch thread each (tests/conftest.py); TEST_WORKERS=0 runs it in this process, with torch's default threads. The tests
 # of one compiled step share a group (tests/helpers.py), run by one worker in turn: the first compiles, the rest hit
 # Inductor's cache
@@ -55,4 +56,4 @@ notebooks: install
 	$(VENV)/bin/jupyter-execute --inplace notebooks/*.ipynb
 
 clean:
-	rm -rf $(VENV) logs build docs/_build *.egg-info .pytest_cache .mypy_cache .ruff_cache
+	rm -rf $(VENV) logs build docs/_build *.egg-info study/*.egg-info .pytest_cache .mypy_cache .ruff_cache

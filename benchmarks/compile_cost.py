@@ -34,7 +34,7 @@ def build(algo: str, policy: str, env: str, learning_starts: int, policy_kwargs:
     import torch as th
     from torch._dynamo.utils import counters
 
-    from sb3_sera.experiments.registry import algorithm_classes
+    from sera_study.registry import algorithm_classes
 
     th.set_num_threads(1)
     before = cpu_seconds()

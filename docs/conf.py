@@ -82,7 +82,7 @@ html_css_files = ["sb3_sera.css"]
 
 # -- Generated pages -------------------------------------------------------------------------------------------------
 
-#: Markdown written by a study whose headings start at level 3 (python -m sb3_sera.experiments.theory writes the
+#: Markdown written by a study whose headings start at level 3 (python -m sera_study.theory writes the
 #: tables of docs/results/theory/): each gets a page title and a section heading above them when it is read
 UNTITLED_TABLES = {
     "results/theory/target_estimators": "# The target estimators: every table\n\n## The sweeps and SERA's diagnostics\n\n",

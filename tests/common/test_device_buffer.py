@@ -11,7 +11,6 @@ from stable_baselines3.common.vec_env import VecNormalize
 
 from sb3_sera import MASAC, SERASAC, SUNRISE
 from sb3_sera.common.device_buffer import DeviceDictReplayBuffer, DeviceReplayBuffer, device_buffer_class
-from sb3_sera.experiments.checkpoint import _buffer_arrays, _restore_buffer
 from sb3_sera.sunrise.buffers import SUNRISEDeviceReplayBuffer, SUNRISEReplayBuffer
 from tests.helpers import COMPILED_CTDE_TASK, COMPILED_GROUP, ENV_ID, SMALL, compiled_settings
 
@@ -140,18 +139,6 @@ def test_the_default_buffer_is_on_the_device_only_for_cuda_graphs():
     if th.cuda.is_available():
         model = SERASAC("MlpPolicy", ENV_ID, compile_update="reduce-overhead", device="cuda", **SMALL)
         assert type(model.replay_buffer) is DeviceReplayBuffer and model.replay_buffer.device.type == "cuda"
-
-
-def test_a_checkpoint_keeps_a_device_buffers_transitions():
-    buffer = DeviceReplayBuffer(8, OBSERVATION, ACTION, device="cpu")
-    _fill(buffer, 5, 1)
-    saved = _buffer_arrays(buffer)
-    assert saved["arrays"]["observations"].shape == (5, 1, 3) and isinstance(saved["arrays"]["rewards"], np.ndarray)
-    fresh = DeviceReplayBuffer(8, OBSERVATION, ACTION, device="cpu")
-    _restore_buffer(fresh, saved)
-    for name in ("observations", "next_observations", "actions", "rewards", "dones", "timeouts"):
-        assert th.equal(getattr(fresh, name), getattr(buffer, name)), name
-    assert (fresh.pos, fresh.full) == (buffer.pos, buffer.full)
 
 
 @COMPILED_GROUP["sunrise"]

@@ -21,10 +21,10 @@ from sb3_sera import IET, CTDEEnv
 from sb3_sera.common.layers import BatchedLinear
 from sb3_sera.ctde.env import STATE_KEY
 from sb3_sera.ctde.execution import DecentralizedActors
-from sb3_sera.experiments.zoo import HYPERPARAMS_DIR, ZOO_ALGOS, register_with_zoo
 from sb3_sera.iet.latents import LATENT_KEY, LatentVecEnv
 from sb3_sera.iet.networks import SoftModularNetwork, combine_modules, mix_modules, routing_entropy
 from sb3_sera.iet.policies import IETAgentActor
+from sb3_sera.zoo import ALGOS, HYPERPARAMS_DIR, register
 from tests.helpers import CTDE_TASK, SMALL_CTDE
 
 AGENTS = ["agent_0", "agent_1", "agent_2"]
@@ -377,10 +377,10 @@ def test_bad_input_is_refused():
 
 
 def test_zoo_registration_sampler_and_hyperparameter_file():
-    register_with_zoo()
+    register()
     from rl_zoo3 import hyperparams_opt, utils
 
-    assert ZOO_ALGOS["iet"] is IET and utils.ALGOS["iet"] is IET
+    assert ALGOS["iet"] is IET and utils.ALGOS["iet"] is IET
     trial = optuna.create_study().ask()
     params = hyperparams_opt.HYPERPARAMS_SAMPLER["iet"](trial, 1, 1, {"using_her_replay_buffer": False})
     assert params["latent_dim"] in (5, 10, 16) and isinstance(params["policy_kwargs"]["net_arch"], list)
@@ -396,30 +396,6 @@ def test_zoo_registration_sampler_and_hyperparameter_file():
         kwargs["policy_kwargs"] = eval(kwargs["policy_kwargs"])
         model = IET(entry["policy"], env_id, **{**kwargs, "buffer_size": 100})
         assert model.policy.modular_kwargs == dict(hidden_dim=64, n_layers=2, n_modules=2, n_gating_layers=2)
-
-
-def test_zoo_train_with_evaluations_then_enjoy(tmp_path, sb3_sera_here):
-    folder = str(tmp_path)
-    common = ["--algo", "iet", "--env", CTDE_TASK, "-f", folder, "--num-threads", "1"]
-    sb3_sera_here(
-        "train",
-        *common,
-        "-n",
-        "200",
-        "--seed",
-        "0",
-        "--eval-freq",
-        "100",
-        "--eval-episodes",
-        "2",
-        "-params",
-        "learning_starts:50",
-    )
-    run = tmp_path / "iet" / "sb3_sera-SimpleSpread-v0_1"
-    assert (run / "sb3_sera-SimpleSpread-v0.zip").exists() and (run / "evaluations.npz").exists()
-    # The evaluations (their env given latents by the callback) also valued each episode's first state
-    assert np.load(run / "initial_state_bias.npz")["values"].shape == (2, 2)
-    assert "Mean reward" in sb3_sera_here("enjoy", *common, "--exp-id", "1", "-n", "60", "--no-render")
 
 
 # --- Learning ---

@@ -102,7 +102,7 @@ def test_the_site_builds_without_a_warning_and_every_image_and_link_resolves(tmp
         "api/ctde",
         "api/sera",
         "api/baselines",
-        "api/experiments",
+        "api/study",
         "misc/changelog",
         "SPEC",
     ]

@@ -1,5 +1,5 @@
-"""The package's layers point down only (common < ctde < the algorithms < experiments), with no import cycle, and
-every module imports on its own."""
+"""The library's layers point down only (common < ctde < the algorithms < the zoo registration), the library never
+imports the study, neither package has an import cycle, and every module of both imports on its own."""
 
 import ast
 import subprocess
@@ -11,30 +11,38 @@ import pytest
 from tests.helpers import ROOT
 
 PACKAGE = ROOT / "sb3_sera"
+STUDY = ROOT / "study" / "sera_study"
 #: Each subpackage's layer: a module may import its own subpackage and lower layers only
-LAYERS = {"common": 0, "ctde": 1, "sera": 2, "sunrise": 2, "ace": 2, "iet": 2, "experiments": 3}
+LAYERS = {"common": 0, "ctde": 1, "sera": 2, "sunrise": 2, "ace": 2, "iet": 2, "zoo": 3}
 
 
-def module_name(path: Path) -> str:
-    parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
+def module_name(path: Path, package: Path = PACKAGE) -> str:
+    parts = path.relative_to(package.parent).with_suffix("").parts
     return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
 MODULES = {module_name(path): path for path in sorted(PACKAGE.rglob("*.py"))}
+STUDY_MODULES = {module_name(path, STUDY): path for path in sorted(STUDY.rglob("*.py"))}
 
 
-def imports_of(path: Path) -> set[str]:
-    """The package's modules ``path`` imports, at module level or inside functions alike."""
+def imports_of(path: Path, tops: tuple[str, ...] = ("sb3_sera",)) -> set[str]:
+    """The modules of the packages ``tops`` that ``path`` imports, at module level or inside functions alike."""
+    known = MODULES | STUDY_MODULES
     found = set()
     for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("sb3_sera"):
+        if isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] in tops:
             # "from sb3_sera.x import y": y may be a module of x
             for alias in node.names:
                 candidate = f"{node.module}.{alias.name}"
-                found.add(candidate if candidate in MODULES else node.module)
+                found.add(candidate if candidate in known else node.module)
         elif isinstance(node, ast.Import):
-            found.update(alias.name for alias in node.names if alias.name.startswith("sb3_sera"))
+            found.update(alias.name for alias in node.names if alias.name.split(".")[0] in tops)
     return found
+
+
+def test_the_library_never_imports_the_study():
+    found = {module: imports_of(path, ("sera_study",)) for module, path in MODULES.items()}
+    assert not {module: imported for module, imported in found.items() if imported}
 
 
 def subpackage(module: str) -> str | None:
@@ -47,7 +55,7 @@ def test_lower_layers_never_import_upper_ones():
     for module, path in MODULES.items():
         own = subpackage(module)
         if own not in LAYERS:
-            continue  # sb3_sera/__init__.py and __main__.py stand above every layer
+            continue  # sb3_sera/__init__.py stands above every layer
         for imported in imports_of(path):
             other = subpackage(imported)
             if other is None or other == own:
@@ -58,11 +66,13 @@ def test_lower_layers_never_import_upper_ones():
 
 
 def test_every_subpackage_has_a_layer():
-    assert {subpackage(module) for module in MODULES} - {None, "__main__"} == set(LAYERS)
+    assert {subpackage(module) for module in MODULES} - {None} == set(LAYERS)
 
 
-def test_no_import_cycle():
-    graph = {module: {m for m in imports_of(path) if m in MODULES and m != module} for module, path in MODULES.items()}
+@pytest.mark.parametrize("modules", [MODULES, STUDY_MODULES], ids=["library", "study"])
+def test_no_import_cycle(modules):
+    tops = ("sb3_sera", "sera_study")
+    graph = {module: {m for m in imports_of(path, tops) if m in modules and m != module} for module, path in modules.items()}
     # A package's __init__ imports its modules; a module importing its own package's __init__ would close a cycle
     state: dict[str, int] = {}
 
@@ -82,7 +92,7 @@ def test_no_import_cycle():
 
 @pytest.mark.parametrize("order", ["forward", "backward"])
 def test_every_module_imports_in_either_order(order):
-    modules = sorted(name for name in MODULES if not name.endswith("__main__"))
+    modules = sorted(name for name in MODULES | STUDY_MODULES if not name.endswith("__main__"))
     if order == "backward":
         modules.reverse()
     script = f"import importlib\nfor name in {modules!r}:\n    importlib.import_module(name)\n"

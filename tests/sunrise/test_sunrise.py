@@ -17,10 +17,10 @@ from torch import nn
 
 from sb3_sera import SUNRISE
 from sb3_sera.common.layers import BatchedLinear
-from sb3_sera.experiments.zoo import HYPERPARAMS_DIR, ZOO_ALGOS, register_with_zoo
 from sb3_sera.sunrise.buffers import SUNRISEReplayBufferSamples, bootstrap_masks
 from sb3_sera.sunrise.ensemble import backup_weight, ensemble_std, masked_mean, ucb_choice, weighted_bellman_loss
 from sb3_sera.sunrise.policies import SUNRISEPolicy
+from sb3_sera.zoo import ALGOS, HYPERPARAMS_DIR, register
 from tests.helpers import ENV_ID, SMALL, assert_same_state, snapshot
 
 
@@ -444,10 +444,10 @@ def test_multi_agent_tasks_are_refused_with_the_reason():
 
 
 def test_zoo_registration_sampler_and_hyperparameter_file():
-    register_with_zoo()
+    register()
     from rl_zoo3 import hyperparams_opt, utils
 
-    assert ZOO_ALGOS["sunrise"] is SUNRISE and utils.ALGOS["sunrise"] is SUNRISE
+    assert ALGOS["sunrise"] is SUNRISE and utils.ALGOS["sunrise"] is SUNRISE
     trial = optuna.create_study().ask()
     params = hyperparams_opt.HYPERPARAMS_SAMPLER["sunrise"](trial, 1, 1, {"using_her_replay_buffer": False})
     assert 2 <= params["n_members"] <= 10 and params["backup_temperature"] > 0 and params["ucb_lambda"] >= 0
@@ -462,17 +462,6 @@ def test_zoo_registration_sampler_and_hyperparameter_file():
     for entry in entries.values():
         kwargs = {key: value for key, value in entry.items() if key not in ("n_timesteps", "policy")}
         SUNRISE(entry["policy"], ENV_ID, **{**kwargs, "buffer_size": 100})
-
-
-def test_zoo_train_with_evaluations_then_enjoy(tmp_path, sb3_sera_here):
-    folder = str(tmp_path)
-    common = ["--algo", "sunrise", "--env", ENV_ID, "-f", folder, "--num-threads", "1"]
-    sb3_sera_here("train", *common, "-n", "300", "--seed", "0", "--eval-freq", "100", "--eval-episodes", "1")
-    run = tmp_path / "sunrise" / "Pendulum-v1_1"
-    assert (run / "Pendulum-v1.zip").exists() and (run / "evaluations.npz").exists()
-    # The evaluations also recorded the ensemble's value of each episode's first state (all 10 critics)
-    assert np.load(run / "initial_state_bias.npz")["values"].shape == (3, 1)
-    assert "Mean reward" in sb3_sera_here("enjoy", *common, "--exp-id", "1", "-n", "200", "--no-render")
 
 
 # --- Learning ---

@@ -1,1 +1,0 @@
-"""Experiment tooling: comparisons, command line."""
