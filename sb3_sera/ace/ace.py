@@ -6,18 +6,17 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
-from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.noise import ActionNoise, VectorizedActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
+from stable_baselines3.common.type_aliases import GymEnv, Schedule
 from stable_baselines3.common.utils import polyak_update
 
 from sb3_sera.ace.policies import ACEPolicy, MlpPolicy
 from sb3_sera.ace.tuning import ACE_TUNING
 from sb3_sera.common.arguments import check_gymnasium_env, checks_keywords, warn_if_device_unavailable
 from sb3_sera.common.capabilities import Capabilities
-from sb3_sera.common.finite import check_finite, check_replay_batch, gradient_step_context, with_env_step_check
+from sb3_sera.common.finite import ChecksEnvSteps, check_finite, check_replay_batch, gradient_step_context
 from sb3_sera.common.hyperparameters import base_arguments, check_choice, check_range
 from sb3_sera.common.naming import NamedRuns
 from sb3_sera.common.tuning import TuningSpace
@@ -45,7 +44,7 @@ class DecayingNormalNoise(ActionNoise):
         return f"DecayingNormalNoise(sigma={self.sigma}, initial_sigma={self.initial_sigma})"
 
 
-class ACE(NamedRuns, Capabilities, OffPolicyAlgorithm):
+class ACE(NamedRuns, ChecksEnvSteps, Capabilities, OffPolicyAlgorithm):
     """
     ACE: Actor Ensemble with tree search. DDPG-style and deterministic: ``n_actors`` actor heads and one critic over a
     shared state feature, with learned reward and transition models in feature space. Each action is chosen by a
@@ -165,10 +164,6 @@ class ACE(NamedRuns, Capabilities, OffPolicyAlgorithm):
         # The exploration noise decays linearly to 0 over the run
         for noise in self.decaying_noises():
             noise.sigma = noise.initial_sigma * self._current_progress_remaining
-
-    def _init_callback(self, callback: MaybeCallback, progress_bar: bool = False) -> BaseCallback:
-        # Non-finite rewards and observations are refused at the env step that gives them, before the normalizer
-        return super()._init_callback(with_env_step_check(callback), progress_bar)
 
     def _store_transition(
         self,

@@ -144,6 +144,14 @@ def checks_keywords(init: InitT) -> InitT:
     return cast(InitT, checked)
 
 
+def constructor_arguments(frame_locals: dict[str, Any]) -> dict[str, Any]:
+    """
+    A constructor's arguments by name, from its ``locals()`` before it binds a name of its own (``self`` and the
+    ``__class__`` cell left out): how a constructor that writes out its SB3 algorithm's parameters hands them on.
+    """
+    return {name: value for name, value in frame_locals.items() if name not in ("self", "__class__")}
+
+
 def check_gymnasium_env(algorithm: str, env: Any, multi_agent: bool) -> None:
     """
     Raise ``TypeError`` for a PettingZoo env (``ParallelEnv`` or ``AECEnv``), saying how to make it a Gymnasium env:

@@ -127,7 +127,7 @@ class EnvStepCheck(BaseCallback):
     """
     Raise ``FloatingPointError`` when the env gives a non-finite reward or observation, at the step it does so:
     before the algorithm acts on that observation, stores the transition, or normalizes by it. Goes first in the
-    callbacks (:func:`with_env_step_check`); reads the ``new_obs`` and ``rewards`` of SB3's ``collect_rollouts``.
+    callbacks (:class:`ChecksEnvSteps`); reads the ``new_obs`` and ``rewards`` of SB3's ``collect_rollouts``.
     """
 
     def _on_step(self) -> bool:
@@ -137,17 +137,22 @@ class EnvStepCheck(BaseCallback):
         return True
 
 
-def with_env_step_check(callback: MaybeCallback) -> list[BaseCallback]:
-    """``callback`` (as ``learn`` takes it) after an :class:`EnvStepCheck`, for ``BaseAlgorithm._init_callback``."""
-    if callback is None:
-        callbacks: list[BaseCallback] = []
-    elif isinstance(callback, list):
-        callbacks = callback
-    elif isinstance(callback, BaseCallback):
-        callbacks = [callback]
-    else:
-        callbacks = [ConvertCallback(callback)]
-    return [EnvStepCheck(), *callbacks]
+class ChecksEnvSteps(BaseAlgorithm):
+    """
+    In an algorithm's bases before its SB3 algorithm: every ``learn`` runs an :class:`EnvStepCheck` before the
+    user's callbacks, so that a non-finite reward or observation is refused at the env step that gives it.
+    """
+
+    def _init_callback(self, callback: MaybeCallback, progress_bar: bool = False) -> BaseCallback:
+        if callback is None:
+            callbacks: list[BaseCallback] = []
+        elif isinstance(callback, list):
+            callbacks = callback
+        elif isinstance(callback, BaseCallback):
+            callbacks = [callback]
+        else:
+            callbacks = [ConvertCallback(callback)]
+        return super()._init_callback([EnvStepCheck(), *callbacks], progress_bar)
 
 
 class FiniteUpdates:

@@ -12,20 +12,22 @@ from typing import Any, ClassVar, cast
 import torch as th
 from stable_baselines3 import DDPG, PPO, SAC, TD3
 from stable_baselines3.common.base_class import BaseAlgorithm
-from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.buffers import ReplayBuffer, RolloutBuffer
+from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, ReplayBufferSamples
+from stable_baselines3.common.type_aliases import GymEnv, ReplayBufferSamples, Schedule
 from torch.nn import functional as F
 
-from sb3_sera.common.arguments import check_keywords, warn_if_device_unavailable
+from sb3_sera.common.arguments import checks_keywords, constructor_arguments, warn_if_device_unavailable
 from sb3_sera.common.capabilities import Capabilities
 from sb3_sera.common.compiled import (
     TD3_QUANTITIES,
     AdamPlan,
     AdamState,
     CompiledUpdate,
+    CompileMode,
     StepOutput,
     masked_polyak,
     masked_sac_update,
@@ -34,9 +36,10 @@ from sb3_sera.common.compiled import (
     sac_plans,
     td3_plans,
 )
-from sb3_sera.common.finite import FiniteUpdates, check_rollout_buffer, with_env_step_check
+from sb3_sera.common.finite import ChecksEnvSteps, FiniteUpdates, check_rollout_buffer
 from sb3_sera.common.hyperparameters import check_hyperparameters
 from sb3_sera.common.naming import NamedRuns
+from sb3_sera.common.off_policy import start_train
 from sb3_sera.common.targets import sac_td_target
 from sb3_sera.ctde.policies import MAPPOPolicy, MASACPolicy, MATD3Policy, fill_agent_layout, make_env_for_policy
 
@@ -50,12 +53,11 @@ def _sb3_algorithm(algorithm_class: type[BaseAlgorithm]) -> type[BaseAlgorithm]:
     )
 
 
-class _CTDEAlgorithm(NamedRuns, Capabilities, BaseAlgorithm):
+class _CTDEAlgorithm(NamedRuns, ChecksEnvSteps, Capabilities, BaseAlgorithm):
     """
     What each multi-agent algorithm adds to its SB3 algorithm (comes first in the bases): a CTDE env refuses any
     policy but ``"CTDEPolicy"``, and the CTDE policy learns the agents' action sizes from the env. Each algorithm
-    declares its SB3 algorithm's ``__signature__``: its hyperparameters are that algorithm's, and callers (rl-zoo3
-    files, ``sb3-sera bench`` grids) check names against it.
+    writes out its SB3 algorithm's parameters (and ``compile_update`` where it compiles), as SB3 does.
 
     An unknown keyword raises ``TypeError`` naming it, its close matches (or the ``policy_kwargs`` a policy argument
     belongs in) and the algorithm's keywords (:func:`~sb3_sera.common.arguments.check_keywords`); a PettingZoo env,
@@ -68,8 +70,6 @@ class _CTDEAlgorithm(NamedRuns, Capabilities, BaseAlgorithm):
     """
 
     def __init__(self, policy: str | type[BasePolicy], env: GymEnv | str | None, *args: Any, **kwargs: Any):
-        # An unknown keyword is named with the algorithm's own (IET's latent_dim too), not SB3's class
-        check_keywords(type(self), kwargs, policy)
         if isinstance(self, CompiledUpdate):
             self._take_compile_update(kwargs.pop("compile_update", False))
         sb3_class = _sb3_algorithm(type(self))
@@ -88,10 +88,6 @@ class _CTDEAlgorithm(NamedRuns, Capabilities, BaseAlgorithm):
         """Each optimizer of the model by the name of the loss it minimizes, in the order SB3 steps them."""
         raise NotImplementedError
 
-    def _init_callback(self, callback: MaybeCallback, progress_bar: bool = False) -> BaseCallback:
-        # Non-finite rewards and observations are refused at the env step that gives them
-        return super()._init_callback(with_env_step_check(callback), progress_bar)
-
     def train(self, *args: Any, **kwargs: Any) -> None:
         """SB3's ``train``, watched for non-finite values (see the class's docstring), or through the compiled step."""
         if isinstance(self, CompiledUpdate) and self._compiled_step is not None:
@@ -99,28 +95,12 @@ class _CTDEAlgorithm(NamedRuns, Capabilities, BaseAlgorithm):
             sb3_train = cast(type[OffPolicyAlgorithm], _sb3_algorithm(type(self))).train
             call = inspect.signature(sb3_train).bind(self, *args, **kwargs)
             call.apply_defaults()
-            self._train_compiled_call(call.arguments["gradient_steps"], call.arguments["batch_size"])
+            start_train(self, list(self._loss_optimizers().values()))
+            self._train_steps(call.arguments["gradient_steps"], call.arguments["batch_size"])
             return
         replay_buffer = self.replay_buffer if isinstance(self, OffPolicyAlgorithm) else None
         with FiniteUpdates(self, self._loss_optimizers(), replay_buffer).watch():
             super().train(*args, **kwargs)  # type: ignore[misc]  # the SB3 algorithm after this class in the bases
-
-    def _train_compiled_call(self, gradient_steps: int, batch_size: int) -> None:
-        """SB3's ``train`` preamble and count around :meth:`.CompiledUpdate._train_compiled`."""
-        assert isinstance(self, CompiledUpdate)
-        self.policy.set_training_mode(True)
-        self._update_learning_rate(list(self._loss_optimizers().values()))
-        self._train_compiled(gradient_steps, batch_size)
-        self._n_updates += gradient_steps
-        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
-
-
-def _with_compile_update(signature: inspect.Signature) -> inspect.Signature:
-    """SB3 SAC's signature with ``compile_update`` added before ``policy_kwargs``."""
-    parameters = list(signature.parameters.values())
-    index = next(i for i, parameter in enumerate(parameters) if parameter.name == "policy_kwargs")
-    added = inspect.Parameter("compile_update", inspect.Parameter.POSITIONAL_OR_KEYWORD, default=False)
-    return signature.replace(parameters=[*parameters[:index], added, *parameters[index:]])
 
 
 class MASAC(_CTDEAlgorithm, CompiledUpdate, SAC):
@@ -135,7 +115,41 @@ class MASAC(_CTDEAlgorithm, CompiledUpdate, SAC):
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {**SAC.policy_aliases, "CTDEPolicy": MASACPolicy}
     tunes_like: ClassVar[str | None] = "sac"
     soft_q_critics: ClassVar[bool] = True
-    __signature__ = _with_compile_update(inspect.signature(SAC))
+
+    @checks_keywords
+    def __init__(
+        self,
+        policy: str | type[MASACPolicy],
+        env: GymEnv | str,
+        learning_rate: float | Schedule = 3e-4,
+        buffer_size: int = 1_000_000,
+        learning_starts: int = 100,
+        batch_size: int = 256,
+        tau: float = 0.005,
+        gamma: float = 0.99,
+        train_freq: int | tuple[int, str] = 1,
+        gradient_steps: int = 1,
+        action_noise: ActionNoise | None = None,
+        replay_buffer_class: type[ReplayBuffer] | None = None,
+        replay_buffer_kwargs: dict[str, Any] | None = None,
+        optimize_memory_usage: bool = False,
+        n_steps: int = 1,
+        ent_coef: str | float = "auto",
+        target_update_interval: int = 1,
+        target_entropy: str | float = "auto",
+        use_sde: bool = False,
+        sde_sample_freq: int = -1,
+        use_sde_at_warmup: bool = False,
+        stats_window_size: int = 100,
+        tensorboard_log: str | None = None,
+        compile_update: CompileMode = False,
+        policy_kwargs: dict[str, Any] | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: th.device | str = "auto",
+        _init_setup_model: bool = True,
+    ):
+        super().__init__(**constructor_arguments(locals()))
 
     def _setup_model(self) -> None:
         super()._setup_model()
@@ -281,7 +295,38 @@ class MATD3(_CTDEAlgorithm, _CompiledTD3):
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {**TD3.policy_aliases, "CTDEPolicy": MATD3Policy}
     tunes_like: ClassVar[str | None] = "td3"
-    __signature__ = _with_compile_update(inspect.signature(TD3))
+
+    @checks_keywords
+    def __init__(
+        self,
+        policy: str | type[MATD3Policy],
+        env: GymEnv | str,
+        learning_rate: float | Schedule = 1e-3,
+        buffer_size: int = 1_000_000,
+        learning_starts: int = 100,
+        batch_size: int = 256,
+        tau: float = 0.005,
+        gamma: float = 0.99,
+        train_freq: int | tuple[int, str] = 1,
+        gradient_steps: int = 1,
+        action_noise: ActionNoise | None = None,
+        replay_buffer_class: type[ReplayBuffer] | None = None,
+        replay_buffer_kwargs: dict[str, Any] | None = None,
+        optimize_memory_usage: bool = False,
+        n_steps: int = 1,
+        policy_delay: int = 2,
+        target_policy_noise: float = 0.2,
+        target_noise_clip: float = 0.5,
+        stats_window_size: int = 100,
+        tensorboard_log: str | None = None,
+        compile_update: CompileMode = False,
+        policy_kwargs: dict[str, Any] | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: th.device | str = "auto",
+        _init_setup_model: bool = True,
+    ):
+        super().__init__(**constructor_arguments(locals()))
 
     def _loss_optimizers(self) -> dict[str, th.optim.Optimizer]:
         return {"critic loss": self.critic.optimizer, "actor loss": self.actor.optimizer}
@@ -298,7 +343,34 @@ class MADDPG(_CTDEAlgorithm, _CompiledTD3, DDPG):
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {**DDPG.policy_aliases, "CTDEPolicy": MATD3Policy}
     tunes_like: ClassVar[str | None] = "ddpg"
-    __signature__ = _with_compile_update(inspect.signature(DDPG))
+
+    @checks_keywords
+    def __init__(
+        self,
+        policy: str | type[MATD3Policy],
+        env: GymEnv | str,
+        learning_rate: float | Schedule = 1e-3,
+        buffer_size: int = 1_000_000,
+        learning_starts: int = 100,
+        batch_size: int = 256,
+        tau: float = 0.005,
+        gamma: float = 0.99,
+        train_freq: int | tuple[int, str] = 1,
+        gradient_steps: int = 1,
+        action_noise: ActionNoise | None = None,
+        replay_buffer_class: type[ReplayBuffer] | None = None,
+        replay_buffer_kwargs: dict[str, Any] | None = None,
+        optimize_memory_usage: bool = False,
+        n_steps: int = 1,
+        tensorboard_log: str | None = None,
+        compile_update: CompileMode = False,
+        policy_kwargs: dict[str, Any] | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: th.device | str = "auto",
+        _init_setup_model: bool = True,
+    ):
+        super().__init__(**constructor_arguments(locals()))
 
     def _loss_optimizers(self) -> dict[str, th.optim.Optimizer]:
         return {"critic loss": self.critic.optimizer, "actor loss": self.actor.optimizer}
@@ -311,7 +383,38 @@ class MAPPO(_CTDEAlgorithm, PPO):
     off_policy: ClassVar[bool] = False
     has_q_critics: ClassVar[bool] = False
     tunes_like: ClassVar[str | None] = "ppo"
-    __signature__ = inspect.signature(PPO)
+
+    @checks_keywords
+    def __init__(
+        self,
+        policy: str | type[MAPPOPolicy],
+        env: GymEnv | str,
+        learning_rate: float | Schedule = 3e-4,
+        n_steps: int = 2048,
+        batch_size: int = 64,
+        n_epochs: int = 10,
+        gamma: float = 0.99,
+        gae_lambda: float = 0.95,
+        clip_range: float | Schedule = 0.2,
+        clip_range_vf: float | Schedule | None = None,
+        normalize_advantage: bool = True,
+        ent_coef: float = 0.0,
+        vf_coef: float = 0.5,
+        max_grad_norm: float = 0.5,
+        use_sde: bool = False,
+        sde_sample_freq: int = -1,
+        rollout_buffer_class: type[RolloutBuffer] | None = None,
+        rollout_buffer_kwargs: dict[str, Any] | None = None,
+        target_kl: float | None = None,
+        stats_window_size: int = 100,
+        tensorboard_log: str | None = None,
+        policy_kwargs: dict[str, Any] | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: th.device | str = "auto",
+        _init_setup_model: bool = True,
+    ):
+        super().__init__(**constructor_arguments(locals()))
 
     def _loss_optimizers(self) -> dict[str, th.optim.Optimizer]:
         return {"PPO loss": self.policy.optimizer}

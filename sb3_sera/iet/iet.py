@@ -7,7 +7,6 @@ conditioned on a per-agent, per-episode Gaussian latent, with centralized critic
 Evaluation draws the latents the same way (one per agent per episode).
 """
 
-import inspect
 import io
 import pathlib
 from collections.abc import Iterable
@@ -15,11 +14,14 @@ from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 import torch as th
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.type_aliases import GymEnv
+from stable_baselines3.common.type_aliases import GymEnv, Schedule
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper, unwrap_vec_normalize
 
-from sb3_sera.common.arguments import check_keywords
+from sb3_sera.common.arguments import checks_keywords, constructor_arguments
+from sb3_sera.common.compiled import CompileMode
 from sb3_sera.common.hyperparameters import check_int
 from sb3_sera.common.tuning import TuningSpace
 from sb3_sera.ctde.algorithms import MASAC
@@ -36,13 +38,6 @@ DEFAULT_LATENT_DIM = 10
 #: Recent transitions, and fresh latents per transition, on which the routing statistics are measured
 ROUTING_TRANSITIONS = 256
 ROUTING_LATENT_DRAWS = 8
-
-
-def _signature() -> inspect.Signature:
-    """MASAC's hyperparameters and ``latent_dim`` (keyword only): what rl-zoo3 files and bench grids may set."""
-    parameters = list(inspect.signature(MASAC).parameters.values())
-    latent = inspect.Parameter("latent_dim", inspect.Parameter.KEYWORD_ONLY, default=DEFAULT_LATENT_DIM, annotation=int)
-    return inspect.Signature([*parameters, latent])
 
 
 class IET(MASAC):
@@ -73,22 +68,53 @@ class IET(MASAC):
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"CTDEPolicy": IETPolicy}
     policy: IETPolicy
-    __signature__ = _signature()
 
+    @checks_keywords
     def __init__(
-        self, policy: str | type[IETPolicy], env: GymEnv | str, *args: Any, latent_dim: int = DEFAULT_LATENT_DIM, **kwargs: Any
+        self,
+        policy: str | type[IETPolicy],
+        env: GymEnv | str,
+        learning_rate: float | Schedule = 3e-4,
+        buffer_size: int = 1_000_000,
+        learning_starts: int = 100,
+        batch_size: int = 256,
+        tau: float = 0.005,
+        gamma: float = 0.99,
+        train_freq: int | tuple[int, str] = 1,
+        gradient_steps: int = 1,
+        action_noise: ActionNoise | None = None,
+        replay_buffer_class: type[ReplayBuffer] | None = None,
+        replay_buffer_kwargs: dict[str, Any] | None = None,
+        optimize_memory_usage: bool = False,
+        n_steps: int = 1,
+        ent_coef: str | float = "auto",
+        target_update_interval: int = 1,
+        target_entropy: str | float = "auto",
+        use_sde: bool = False,
+        sde_sample_freq: int = -1,
+        use_sde_at_warmup: bool = False,
+        stats_window_size: int = 100,
+        tensorboard_log: str | None = None,
+        compile_update: CompileMode = False,
+        policy_kwargs: dict[str, Any] | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: th.device | str = "auto",
+        _init_setup_model: bool = True,
+        *,
+        latent_dim: int = DEFAULT_LATENT_DIM,
     ):
         if isinstance(policy, str) and policy not in self.policy_aliases:
             raise ValueError(
                 f"IET trains CTDE tasks with policy='CTDEPolicy' (per-agent soft-modular actors), got {policy!r}; "
                 "on a single-agent task use SERASAC, SAC or SUNRISE"
             )
-        # Named against IET's own keywords (latent_dim among them), not MASAC's
-        check_keywords(type(self), kwargs, policy)
         self.latent_dim = check_int("latent_dim", latent_dim, 1)
         #: The latents' generator state when the model was saved (see :meth:`save` and :meth:`load`)
         self._latent_rng_state: dict[str, Any] | None = None
-        super().__init__(policy, env, *args, **kwargs)
+        arguments = constructor_arguments(locals())
+        del arguments["latent_dim"]
+        super().__init__(**arguments)
 
     def with_latents(self, env: VecEnv, seed: int | None = None) -> VecEnv:
         """

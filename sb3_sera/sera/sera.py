@@ -1,14 +1,14 @@
 """SERASAC: Soft Actor-Critic with a Soft Ensemble Reliability Aggregation critic (docs/SPEC.md, section 1)."""
 
+import functools
 import warnings
 from typing import Any, ClassVar
 
 import torch as th
 from stable_baselines3.common.buffers import ReplayBuffer
-from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, PyTorchObs, ReplayBufferSamples, Schedule
+from stable_baselines3.common.type_aliases import GymEnv, PyTorchObs, ReplayBufferSamples, Schedule
 from stable_baselines3.common.utils import FloatSchedule, polyak_update
 from stable_baselines3.sac import SAC
 
@@ -27,7 +27,7 @@ from sb3_sera.common.compiled import (
     sac_plans,
     sac_quantities,
 )
-from sb3_sera.common.finite import check_finite, gradient_step_context, with_env_step_check
+from sb3_sera.common.finite import ChecksEnvSteps, check_finite, gradient_step_context
 from sb3_sera.common.hyperparameters import (
     base_arguments,
     check_choice,
@@ -71,7 +71,7 @@ from sb3_sera.sera.update import (
 DEFAULT_LEARNING_RATE = 3e-4
 
 
-class SERASAC(NamedRuns, Capabilities, CompiledUpdate, SAC):
+class SERASAC(NamedRuns, ChecksEnvSteps, Capabilities, CompiledUpdate, SAC):
     """
     Soft Ensemble Reliability Aggregation on top of Soft Actor-Critic.
 
@@ -316,10 +316,6 @@ class SERASAC(NamedRuns, Capabilities, CompiledUpdate, SAC):
         """
         check_finite(quantities, gradient_step_context(self, gradient_step), sentinel)
 
-    def _init_callback(self, callback: MaybeCallback, progress_bar: bool = False) -> BaseCallback:
-        # Non-finite rewards and observations are refused at the env step that gives them
-        return super()._init_callback(with_env_step_check(callback), progress_bar)
-
     def td_targets(self, replay_data: ReplayBufferSamples) -> tuple[th.Tensor, th.Tensor]:
         """
         The TD target ``y`` the critics regress on for a replayed batch (the aggregate of the target critics at next
@@ -344,14 +340,9 @@ class SERASAC(NamedRuns, Capabilities, CompiledUpdate, SAC):
         the critics, the actor and the target critics in turn (SB3's SAC order).
         """
         critic_rates = self._start_train()
-        if gradient_steps == 0:
-            # Nothing to train (SB3's SAC accepts it too): no loss or diagnostic to log
-            self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
-            return
-        if self._compiled_step is not None:
-            self._train_compiled(gradient_steps, batch_size)
-            self._count_updates(gradient_steps)
-            return
+        self._train_steps(gradient_steps, batch_size, functools.partial(self._train_eager, critic_rates=critic_rates))
+
+    def _train_eager(self, gradient_steps: int, batch_size: int, critic_rates: list[float]) -> None:
         logged: dict[str, list[th.Tensor]] = {"ent_coef": [], "actor_loss": [], "critic_loss": []}
         for gradient_step in range(gradient_steps):
             replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
@@ -370,14 +361,8 @@ class SERASAC(NamedRuns, Capabilities, CompiledUpdate, SAC):
             self._critic_step(critic.critic_loss, logged)
             self._actor_step(gradient_step, replay_data.observations, actions_pi, log_prob, ent_coef, logged)
             self._target_step(gradient_step)
-        self._count_updates(gradient_steps)
         self._record_diagnostics(diagnostics(critic, target_entropy).tolist(), critic_rates)
         record_means(self.logger, logged)
-
-    def _count_updates(self, gradient_steps: int) -> None:
-        """Count a ``train()`` call's updates, as SB3's SAC does."""
-        self._n_updates += gradient_steps
-        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
 
     def _record_diagnostics(self, diagnostics: list[float], critic_rates: list[float]) -> None:
         """Log the last step's diagnostics (:func:`~sb3_sera.sera.update.diagnostics`' values) and the critics' rates."""

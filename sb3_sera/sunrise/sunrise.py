@@ -27,7 +27,7 @@ from sb3_sera.common.compiled import (
     sac_plans,
 )
 from sb3_sera.common.device_buffer import DeviceReplayBuffer
-from sb3_sera.common.finite import check_finite, gradient_step_context, with_env_step_check
+from sb3_sera.common.finite import ChecksEnvSteps, check_finite, gradient_step_context
 from sb3_sera.common.hyperparameters import (
     base_arguments,
     check_ent_coef,
@@ -80,7 +80,7 @@ class SUNRISELosses(NamedTuple):
     masks: th.Tensor
 
 
-class SUNRISE(NamedRuns, Capabilities, CompiledUpdate, OffPolicyAlgorithm):
+class SUNRISE(NamedRuns, ChecksEnvSteps, Capabilities, CompiledUpdate, OffPolicyAlgorithm):
     """
     SUNRISE (Lee, Laskin, Srinivas and Abbeel, ICML 2021): ``n_members`` independent SAC agents, each with its own
     actor, twin critics, target critics and entropy coefficient, trained on its own bootstrap mask of the replayed
@@ -296,23 +296,17 @@ class SUNRISE(NamedRuns, Capabilities, CompiledUpdate, OffPolicyAlgorithm):
         if self.ent_coef_optimizer is not None:
             optimizers.append(self.ent_coef_optimizer)
         start_train(self, optimizers)
-        if gradient_steps == 0:
-            self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
-            return
+        self._train_steps(gradient_steps, batch_size, self._train_eager)
 
-        if self._compiled_step is not None:
-            self._train_compiled(gradient_steps, batch_size)
-        else:
-            logged: dict[str, list[th.Tensor]] = {}
-            for gradient_step in range(gradient_steps):
-                step_values = self._gradient_step(self._sample(batch_size), gradient_step)
-                for key, value in step_values.items():
-                    logged.setdefault(key, []).append(value)
-                if target_update_due(self._n_updates, gradient_step, self.target_update_interval):
-                    polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
-            record_means(self.logger, logged)
-        self._n_updates += gradient_steps
-        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+    def _train_eager(self, gradient_steps: int, batch_size: int) -> None:
+        logged: dict[str, list[th.Tensor]] = {}
+        for gradient_step in range(gradient_steps):
+            step_values = self._gradient_step(self._sample(batch_size), gradient_step)
+            for key, value in step_values.items():
+                logged.setdefault(key, []).append(value)
+            if target_update_due(self._n_updates, gradient_step, self.target_update_interval):
+                polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
+        record_means(self.logger, logged)
 
     def _sample(self, batch_size: int) -> SUNRISEReplayBufferSamples:
         """A replayed batch with its bootstrap masks (``SUNRISEReplayBuffer._get_samples`` gives them)."""
@@ -457,10 +451,6 @@ class SUNRISE(NamedRuns, Capabilities, CompiledUpdate, OffPolicyAlgorithm):
             synchronization when all are finite)
         """
         check_finite(quantities, gradient_step_context(self, gradient_step))
-
-    def _init_callback(self, callback: MaybeCallback, progress_bar: bool = False) -> BaseCallback:
-        # Non-finite rewards and observations are refused at the env step that gives them
-        return super()._init_callback(with_env_step_check(callback), progress_bar)
 
     def _excluded_save_params(self) -> list[str]:
         return [

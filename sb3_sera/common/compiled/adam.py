@@ -149,14 +149,9 @@ def masked_adam(
     compiled path drift from the eager one (``benchmarks/compiled_vs_eager.py``).
 
     Each parameter group's bias corrections are computed as one vector, and on a CPU the group is updated by torch's
-    multi-tensor (``_foreach``) operations: written an operation a parameter, Adam made most of a compiled step's graph
-    (IET's 105 parameters: 3,300 of its 4,600 operations) and of the time to trace it. Elsewhere the same operations
-    run a parameter at a time (``multi_tensor``): on CUDA, torch 2.11's Inductor fails on the multi-tensor form (an
-    assertion while reordering loops, PyTorch issue 176591, or a kernel that names an argument it does not have) and,
-    with loop reordering off, compiles it to a step that parts from eager SERASAC by 3.0e-4 after one step (2.2e-7 a
-    parameter at a time; an H200, 2026-11-28). A group's float64 powers as a vector can differ from Python's in their
-    last bit (torch's vectorized ``pow``: 1% of the first 200,000 steps at beta 0.999 on an AVX2 CPU); the float32
-    step sizes and corrections made from them were torch's to the bit at all of those steps.
+    multi-tensor (``_foreach``) operations, which trace to a far smaller graph than an operation a parameter; elsewhere
+    (CUDA, where torch 2.11's Inductor does not compile that form correctly) a parameter at a time (``multi_tensor``).
+    The float32 step sizes and corrections are torch's to the bit. Measured: ``docs/speed.md``, "The compiled step".
 
     :param grads: the gradient of each parameter, in the plan's order
     :param state: ``plan.state()``

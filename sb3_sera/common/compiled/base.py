@@ -189,6 +189,20 @@ class CompiledUpdate(OffPolicyAlgorithm):
         default).
         """
 
+    def _train_steps(self, gradient_steps: int, batch_size: int, eager: Callable[[int, int], None] | None = None) -> None:
+        """
+        The gradient steps of a ``train()`` call whose preamble (training mode, schedules) has run, and SB3's count
+        after them: through the compiled step where there is one, else ``eager(gradient_steps, batch_size)``; no step
+        for ``gradient_steps=0``, which SB3's SAC accepts too.
+        """
+        if gradient_steps > 0 and self._compiled_step is not None:
+            self._train_compiled(gradient_steps, batch_size)
+        elif gradient_steps > 0:
+            assert eager is not None, "no compiled step and no eager one"
+            eager(gradient_steps, batch_size)
+        self._n_updates += gradient_steps
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+
     def _train_compiled(self, gradient_steps: int, batch_size: int) -> None:
         """
         A ``train()`` call's steps through the compiled step, run without reading anything back; then, unless

@@ -35,7 +35,7 @@ def random_draws(graph: th.fx.Graph) -> list[th.fx.Node]:
 def torch_keeps_random_order() -> bool:
     """
     Whether this torch's Inductor keeps random draws in program order by itself (from torch 2.13): its locality pass
-    leaves them where they are (PyTorch pull request 176842) and its scheduler runs them chained
+    leaves them where they are and its scheduler runs them chained
     (``_chain_random_ops_for_ordering``, the mark of such a torch).
     """
     from torch._inductor.fx_passes import post_grad
@@ -47,10 +47,10 @@ class KeepRandomOrder(SourcePass):
     """
     An Inductor pass that keeps a step's random draws in program order. A compiled step draws from torch's generator
     as eager code does (``fallback_random``), so each draw gets eager's numbers only if the draws run in eager's order;
-    but the draws depend on no data of each other, and Inductor's scheduler may reorder them (PyTorch issue 181136).
+    but the draws depend on no data of each other, and Inductor's scheduler may reorder them.
     Each draw after the first is made to depend on the one before it (``control_deps``), as torch's Inductor does by
     itself from 2.13 (``_chain_random_ops_for_ordering``), where this pass leaves the graph to it. The pass runs
-    after Inductor's locality pass, which before torch 2.13 moves a draw next to its first use (PyTorch issue 175156):
+    after Inductor's locality pass, which before torch 2.13 moves a draw next to its first use:
     :func:`~sb3_sera.common.compiled.step_options` turns that pass off there, or the chain would keep its order.
     """
 

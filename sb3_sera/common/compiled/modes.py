@@ -57,9 +57,8 @@ def step_options(mode: CompileMode) -> dict[str, Any]:
     check the sizes, strides and alignment of what each library kernel returns (``size_asserts``,
     ``alignment_asserts``: two Python calls per matrix product), and the random draws run in program order, as eager
     draws them (:class:`~sb3_sera.common.compiled.graph_passes.KeepRandomOrder`). Before torch 2.13 Inductor's locality pass
-    moves each draw next to its first use (``reorder_for_locality``, PyTorch issue 175156), which took a SERASAC
-    step's two draws in the other order (on an H200 with torch 2.11: one step differed from eager by 8.5e-4, and by
-    6.0e-8 from eager with its draws swapped): the pass is off on such a torch.
+    moves each draw next to its first use (``reorder_for_locality``), which can take a step's draws out of eager's
+    order: the pass is off on such a torch (measured: ``docs/speed.md``, "On a GPU").
     """
     # Inductor is imported where a step is compiled, not where the package is: it takes seconds
     from sb3_sera.common.compiled.graph_passes import KeepRandomOrder, torch_keeps_random_order
