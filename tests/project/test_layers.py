@@ -104,3 +104,5 @@ def test_the_package_init_needs_no_import_order():
     # No comment or noqa asks for an order: the imports are sorted as ruff sorts them
     text = (PACKAGE / "__init__.py").read_text()
     assert "order matters" not in text.lower() and "noqa: I001" not in text
+    # ... and a plain one, as sb3-contrib's: its names imported, none on first use through a module __getattr__
+    assert "def __getattr__" not in text
