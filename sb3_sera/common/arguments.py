@@ -3,7 +3,8 @@ What every algorithm checks of its constructor's arguments before SB3 sees them:
 
 - An unknown keyword (a typo, or one of the policy's arguments given to the algorithm) raises ``TypeError`` naming it,
   its close matches and every keyword the algorithm takes, or saying that it belongs in ``policy_kwargs``
-  (:func:`check_keywords`; :func:`checks_keywords` does it for a constructor with an explicit signature, which it keeps).
+  (:func:`check_keywords`; :func:`checks_keywords` does it for a constructor with an explicit signature, which it keeps),
+  and so does a keyword of ``policy_kwargs`` that the policy does not take (:func:`check_policy_keywords`).
 - A PettingZoo env, which SB3 would take for an old Gym env, raises ``TypeError`` saying how to wrap it
   (:func:`check_gymnasium_env`).
 
@@ -53,6 +54,42 @@ def policy_keyword_names(policy_class: type) -> list[str]:
         if not any(parameter.kind is inspect.Parameter.VAR_KEYWORD for parameter in parameters):
             break
     return names
+
+
+def takes_only_named_keywords(policy_class: type) -> bool:
+    """Whether :func:`policy_keyword_names` is all ``policy_class`` takes: its chain of ``**kwargs`` ends."""
+    for base in policy_class.__mro__:
+        init = base.__dict__.get("__init__")
+        if init is None:
+            continue
+        parameters = list(inspect.signature(init).parameters.values())
+        if not any(parameter.kind is inspect.Parameter.VAR_KEYWORD for parameter in parameters):
+            return True
+    return False
+
+
+def check_policy_keywords(algorithm: type, policy: Any, policy_kwargs: Any) -> None:
+    """
+    Raise ``TypeError`` if ``policy_kwargs`` holds a keyword the policy does not take, naming it, its close matches
+    and the policy's keywords (SB3 would raise Python's own ``TypeError`` from deep inside the model's setup). A policy
+    that takes any keyword, or a ``policy`` that names no one class, is not checked.
+    """
+    policy_classes = _policy_classes(algorithm, policy)
+    if not isinstance(policy_kwargs, Mapping) or len(policy_classes) != 1:
+        return
+    (policy_class,) = policy_classes
+    if not takes_only_named_keywords(policy_class):
+        return
+    accepted = policy_keyword_names(policy_class)
+    unknown = [keyword for keyword in policy_kwargs if keyword not in accepted]
+    if not unknown:
+        return
+    sentences = [f"{policy_class.__name__}, {algorithm.__name__}'s policy, got {_quoted(unknown, 'and')} in policy_kwargs."]
+    for keyword in unknown:
+        if close := difflib.get_close_matches(keyword, accepted, n=N_CLOSE_MATCHES):
+            sentences.append(f"Did you mean {_quoted(close)}{'' if len(unknown) == 1 else f' for {keyword!r}'}?")
+    sentences.append(f"Its keyword arguments are: {', '.join(accepted)}")
+    raise UnknownKeywordError(" ".join(sentences))
 
 
 def _policy_classes(algorithm: type, policy: Any) -> list[type]:
@@ -138,7 +175,11 @@ def checks_keywords(init: InitT) -> InitT:
         algorithm = type(self)
         if algorithm.__init__ is not checked:
             algorithm = next(cls for cls in algorithm.__mro__ if cls.__dict__.get("__init__") is checked)
-        check_keywords(algorithm, kwargs, args[0] if args else kwargs.get("policy"), signature)
+        policy = args[0] if args else kwargs.get("policy")
+        check_keywords(algorithm, kwargs, policy, signature)
+        if algorithm is type(self):
+            # The policy the model builds is its own class's (IET's, not MASAC's when IET calls MASAC's constructor)
+            check_policy_keywords(algorithm, policy, kwargs.get("policy_kwargs"))
         init(self, *args, **kwargs)
 
     return cast(InitT, checked)

@@ -107,6 +107,15 @@ def check_ent_coef(ent_coef: str | float) -> str | float:
 # --- Hyperparameter ranges of SB3's algorithms, one rule per name ---
 
 
+def _check_target_entropy(name: str, value: Any) -> Any:
+    """``"auto"`` (minus the action size, SB3's) or a finite number of either sign."""
+    if isinstance(value, str) and value == "auto":
+        return value
+    if not _is_real(value) or not math.isfinite(value):
+        raise ValueError(f"{name}={value!r} is invalid: expected 'auto' (minus the action size) or a finite number")
+    return float(value)
+
+
 def _check_learning_rate(name: str, value: Any) -> Any:
     return value if callable(value) else check_range(name, value, 0.0, None, low_inclusive=False)
 
@@ -178,6 +187,7 @@ OFF_POLICY_RULES: dict[str, _Rule] = {
     "n_steps": _at_least(1),
     "target_update_interval": _at_least(1),
     "ent_coef": lambda name, value: check_ent_coef(value),
+    "target_entropy": _check_target_entropy,
     "policy_delay": _at_least(1),
     "target_policy_noise": _non_negative,
     "target_noise_clip": _non_negative,

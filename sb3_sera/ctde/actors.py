@@ -41,13 +41,20 @@ from sb3_sera.common.layers import BatchedLinear
 def check_shareable(observation_space: spaces.Dict, agent_action_dims: dict[str, int], share: bool) -> None:
     """Raise ``ValueError`` if one actor is to serve agents whose observation or action spaces differ."""
     shapes = {agent: (observation_space[agent].shape, size) for agent, size in agent_action_dims.items()}
-    if share and len(set(shapes.values())) > 1:
-        raise ValueError(
-            "share_actor=True needs agents with equal observation and action spaces, got "
-            f"(observation shape, action size) {shapes}; pad the observations and add an agent indicator "
-            "(agent_indicator=True in gym.make of the sb3_sera ids or in CTDEEnv) or keep one "
-            "actor per agent"
+    if not share or len(set(shapes.values())) == 1:
+        return
+    if len(set(agent_action_dims.values())) > 1:
+        # No padding of the observations helps: one actor's output has one size
+        advice = "one actor cannot act for agents whose action sizes differ: keep one actor per agent (share_actor=False)"
+    else:
+        advice = (
+            "pad the observations and add an agent indicator (agent_indicator=True in gym.make of the sb3_sera ids or "
+            "in CTDEEnv), or keep one actor per agent (share_actor=False)"
         )
+    raise ValueError(
+        "share_actor=True needs agents with equal observation and action spaces, got "
+        f"(observation shape, action size) {shapes}; {advice}"
+    )
 
 
 def make_agent_actor(

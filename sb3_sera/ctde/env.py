@@ -14,6 +14,7 @@ section 2).
 """
 
 import copy
+import warnings
 from collections.abc import Callable
 from typing import Any, Literal
 
@@ -65,6 +66,8 @@ class CTDEEnv(gym.Env):
             raise ValueError(f"time_limit={time_limit!r} is invalid: expected None or an integer >= 1")
         self.env = env
         self.reward_mode = reward_mode
+        #: Whether the warning that the agents' rewards differ in sign (a competitive env) was given
+        self._warned_competitive = False
         self.time_limit = time_limit
         self.is_terminal = is_terminal
         self.agents: list[str] = list(env.possible_agents)
@@ -177,7 +180,16 @@ class CTDEEnv(gym.Env):
         values = np.array([float(value) for value in rewards.values()])
         if np.all(values == values[0]):
             return float(values[0])
-        return float(values.mean() if self.reward_mode == "mean" else values.sum())
+        team = float(values.mean() if self.reward_mode == "mean" else values.sum())
+        if not self._warned_competitive and values.min() < 0 < values.max():
+            self._warned_competitive = True
+            warnings.warn(
+                f"CTDEEnv: the agents' rewards differ in sign ({rewards}): the team reward is their {self.reward_mode} "
+                f"({team:.4g}), which one team maximizes together; in a competitive env some agents then act against "
+                "their own rewards (CTDEEnv is for cooperative tasks)",
+                stacklevel=2,
+            )
+        return team
 
     def step(self, action: np.ndarray) -> tuple[dict, float, bool, bool, dict]:
         live_agents = list(self.env.agents)

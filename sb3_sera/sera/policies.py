@@ -1,5 +1,6 @@
 """Policies of SERASAC: SB3's squashed Gaussian actor and a heterogeneous ensemble of critics."""
 
+from collections.abc import Sequence
 from typing import Any
 
 import torch as th
@@ -55,13 +56,26 @@ def check_n_critics(n_critics: int) -> int:
     )
 
 
-def check_critic_archs(critic_archs: list[list[int]], n_critics: int) -> None:
+def check_critic_archs(critic_archs: Any, n_critics: int) -> list[list[int]]:
     """
-    Raise ``ValueError`` unless ``critic_archs`` gives one list of positive layer sizes per critic.
+    ``critic_archs`` as one list of positive layer sizes per critic; ``ValueError`` naming what is wrong otherwise
+    (a string, where a list of lists is expected, is never read a character at a time).
 
-    :param critic_archs: hidden layer sizes, one list per critic
+    :param critic_archs: hidden layer sizes, one list (or tuple) per critic
     :param n_critics: the number of critics
     """
+    example = "e.g. [[256, 256]] * 5"
+    if isinstance(critic_archs, str | bytes) or not isinstance(critic_archs, Sequence):
+        raise ValueError(
+            f"critic_archs={critic_archs!r} is invalid: give a list of n_critics={n_critics} lists of hidden layer sizes "
+            f"({example}), or leave critic_archs=None for the paper's Table 4 architectures"
+        )
+    for idx, arch in enumerate(critic_archs):
+        if isinstance(arch, str | bytes) or not isinstance(arch, Sequence):
+            raise ValueError(
+                f"critic_archs[{idx}]={arch!r} is invalid: each critic's entry is a list of hidden layer sizes ({example})"
+            )
+    critic_archs = [list(arch) for arch in critic_archs]
     if len(critic_archs) != n_critics:
         raise ValueError(
             f"critic_archs has {len(critic_archs)} entries but n_critics={n_critics}: give one list of hidden "
@@ -70,6 +84,7 @@ def check_critic_archs(critic_archs: list[list[int]], n_critics: int) -> None:
     for idx, arch in enumerate(critic_archs):
         if not all(isinstance(size, int) and size > 0 for size in arch):
             raise ValueError(f"critic_archs[{idx}]={arch!r} is invalid: hidden layer sizes must be positive integers")
+    return critic_archs
 
 
 def set_training_flags(module: nn.Module, mode: bool) -> None:
@@ -264,8 +279,7 @@ class SERAPolicy(SACPolicy):
             critic_part = None if net_arch is None else list(get_actor_critic_arch(net_arch)[1])
         if critic_archs is None:
             critic_archs = default_critic_archs(n_critics) if critic_part is None else [critic_part] * n_critics
-        critic_archs = [list(arch) for arch in critic_archs]
-        check_critic_archs(critic_archs, n_critics)
+        critic_archs = check_critic_archs(critic_archs, n_critics)
         if optimizer_kwargs is None and optimizer_class in (th.optim.Adam, th.optim.AdamW):
             # One fused kernel per parameter group instead of a dozen small ops per parameter tensor
             optimizer_kwargs = {"fused": True}

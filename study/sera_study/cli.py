@@ -7,6 +7,7 @@ import argparse
 import ast
 import contextlib
 import importlib.util
+import itertools
 import os
 import re
 import sys
@@ -23,18 +24,33 @@ if TYPE_CHECKING:
 
 def _print_report(results: "list[RunResult]", out: str, name: str, reps: int, summary: str = "") -> None:
     """
-    Report the runs just made in a new ``<out>/reports/<name>_<n>/``; print its tables (where there is no
-    ``summary``) and where the report, its figures and the runs are, then ``summary`` (the comparison in short and
-    what it means), last, where the eye lands.
+    Report the runs just made in a new ``<out>/reports/<name>_<n>/``; print its headline (each task's returns table,
+    where there is no ``summary``) and where the report, its figures and the runs are, then ``summary`` (the
+    comparison in short and what it means), last, where the eye lands.
     """
     from sera_study import report
 
     folder = report.next_report_folder(Path(out) / "reports", name)
     path = report.write_report(results, folder, reps=reps, sources=[out], log=lambda line: print(line, file=sys.stderr))
-    tables = "" if summary else f"\n{path.read_text()}"
+    tables = "" if summary else f"\n{_headline(path.read_text())}"
     print(f"{tables}\nReport: {path}{_figures(path)}\nRun folders: {out}/<variant>/<env_name>_<id>/")
     if summary:
         print(f"\n{summary}")
+
+
+def _headline(report_text: str) -> str:
+    """
+    What a terminal shows of a report: each task's heading and its first table (the returns); the claims, figures and
+    notes stay in the file, whose path follows.
+    """
+    lines = []
+    for section in report_text.split("\n## ")[1:]:
+        heading, *body = section.splitlines()
+        start = next((index for index, line in enumerate(body) if line.startswith("|")), len(body))
+        table = list(itertools.takewhile(lambda line: line.startswith("|"), body[start:]))
+        if table:
+            lines += [f"## {heading}", "", *table, ""]
+    return "\n".join(lines)
 
 
 def _figures(report_path: Path) -> str:
@@ -103,8 +119,8 @@ def _report(args: argparse.Namespace) -> None:
         matrix_step=args.matrix_step,
         log=lambda line: print(line, file=sys.stderr),
     )
-    print(path.read_text())
-    print(f"\nReport: {path}{_figures(path)}")
+    print(_headline(path.read_text()))
+    print(f"Report, with every claim, figure and note: {path}{_figures(path)}")
 
 
 def _ledger_add(args: argparse.Namespace) -> None:

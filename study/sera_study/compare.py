@@ -160,12 +160,16 @@ def reading(results: Sequence[RunResult], algos: Sequence[str]) -> str:
     """
     by_algo = {algo: [r for r in results if r.variant == algo] for algo in algos}
     learned = []
+    #: Whether each algorithm's mean final return is above its mean first evaluation (absent: no evaluation)
+    improved: dict[str, bool] = {}
     for algo, runs in by_algo.items():
         firsts = [(run.timesteps[0], run.returns[0]) for run in runs if run.timesteps]
         if firsts:
             start = sum(value for _, value in firsts) / len(firsts)
             final = sum(run.final_return for run in runs) / len(runs)
-            learned.append(f"{algo} {start:.0f} at step {firsts[0][0]:,} -> {final:.0f}")
+            improved[algo] = final > start
+            flat = "" if improved[algo] else " (no better than its first evaluation)"
+            learned.append(f"{algo} {start:.0f} at step {firsts[0][0]:,} -> {final:.0f}{flat}")
     lines = ["What it means:"]
     if learned:
         lines.append(f"  Learning (mean evaluation return, first -> final): {'; '.join(learned)}.")
@@ -180,8 +184,8 @@ def reading(results: Sequence[RunResult], algos: Sequence[str]) -> str:
         if decision is None or decision.p is None:
             lines.append(
                 f"  {min(len(x), len(y))} run(s) a side cannot tell {first} from {other} at p < {ALPHA} whatever they "
-                f"score: these runs show that each trains, not which is better. A test that can decide needs {needed} "
-                f"runs a side or more (--seeds {' '.join(map(str, range(needed)))}); {elsewhere}."
+                f"score{_what_they_show(improved, (first, other))} A test that can decide needs {needed} runs a side or "
+                f"more (--seeds {' '.join(map(str, range(needed)))}); {elsewhere}."
             )
         elif decision.p < ALPHA:
             lines.append(
@@ -196,6 +200,22 @@ def reading(results: Sequence[RunResult], algos: Sequence[str]) -> str:
                 f"{elsewhere}."
             )
     return "\n".join(lines)
+
+
+def _what_they_show(improved: dict[str, bool], algos: Sequence[str]) -> str:
+    """What runs too few to decide still show of ``algos``: which improved on their first evaluation and which not."""
+    flat = [algo for algo in algos if improved.get(algo) is False]
+    if not flat:
+        return (
+            ": each ended above its first evaluation, so these runs show that each trains, not which is better."
+            if all(improved.get(algo) for algo in algos)
+            else "."
+        )
+    which = " and ".join(flat)
+    return (
+        f": {which} ended no better than {'its' if len(flat) == 1 else 'their'} first evaluation, so these runs show "
+        f"no learning of {'it' if len(flat) == 1 else 'them'} at this budget yet, and nothing of which is better."
+    )
 
 
 def runs_to_decide(threshold: float = ALPHA) -> int:

@@ -156,12 +156,30 @@ def check_known(algo: str, hyperparams: dict[str, Any], allowed: set[str], where
 
     unknown = sorted(set(hyperparams) - allowed)
     if unknown:
-        guesses = {key: difflib.get_close_matches(key, allowed, n=1) for key in unknown}
-        hints = "; ".join(f"did you mean {match[0]!r} for {key!r}?" for key, match in guesses.items() if match)
+        hints = "; ".join(_unknown_key_hint(algo, key, allowed) for key in unknown if _unknown_key_hint(algo, key, allowed))
         raise ValueError(
             f"{where}: unknown hyperparameter(s) {unknown} for {algo}{'; ' + hints if hints else ''}; "
             f"allowed: {sorted(allowed)}"
         )
+
+
+def _unknown_key_hint(algo: str, key: str, allowed: set[str]) -> str:
+    """
+    What to say of ``key``, which ``algo`` does not take: that an on-policy algorithm takes no off-policy setting
+    (SAC's ``learning_starts`` for PPO), else its nearest allowed name; empty where there is none.
+    """
+    from stable_baselines3 import PPO, SAC
+    from stable_baselines3.common.on_policy_algorithm import OnPolicyAlgorithm
+
+    model_class = algorithm_classes().get(algo)
+    off_policy_only = set(inspect.signature(SAC).parameters) - set(inspect.signature(PPO).parameters)
+    if model_class is not None and issubclass(model_class, OnPolicyAlgorithm) and key in off_policy_only:
+        return (
+            f"{algo} is on-policy and takes no {key!r} (an off-policy algorithm's setting): give it to the off-policy "
+            f"algorithms alone (-params <algo>:{key}:<value>)"
+        )
+    match = difflib.get_close_matches(key, allowed, n=1)
+    return f"did you mean {match[0]!r} for {key!r}?" if match else ""
 
 
 def check_task(env_id: str) -> None:

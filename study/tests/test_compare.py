@@ -282,6 +282,16 @@ def test_the_reading_says_what_the_runs_can_decide_and_where_a_real_comparison_i
     # 2 runs a side: the smallest p is 1/3; 4 a side (2 of 70 splits: 0.029) is the fewest that can decide
     assert compare.runs_to_decide() == 4
     assert "2 run(s) a side cannot tell serasac from sac at p < 0.05" in text and "--seeds 0 1 2 3)" in text
+    assert "each ended above its first evaluation, so these runs show that each trains" in text
+    # A run that did not improve says so: the README's small HalfCheetah comparison (-1 -> -9 and -3 -> -7)
+    for result, first in zip(results, [-1.0, -1.0, -3.0, -3.0], strict=True):
+        result.returns = [first, -9.0 if result.variant == "serasac" else -7.0]
+    for result in results:
+        result.final_return = result.returns[-1]
+    text = compare.reading(results, ["serasac", "sac"])
+    assert "serasac -1 at step 1,000 -> -9 (no better than its first evaluation); sac -3" in text
+    assert "serasac and sac ended no better than their first evaluation, so these runs show no learning" in text
+    assert "each trains" not in text
     finals = {"serasac": [-200.0 + i for i in range(6)], "sac": [-260.0 + 3 * i for i in range(6)]}
     assert "serasac ahead of sac on this task at 6,000 steps (p 0.00216)" in compare.reading(
         _results(finals), ["serasac", "sac"]
@@ -306,3 +316,10 @@ def test_version_flag(capsys):
         main(["--version"])
     assert exit_info.value.code == 0
     assert capsys.readouterr().out.strip() == f"sb3-sera {sb3_sera.__version__}"
+
+
+def test_an_off_policy_setting_for_an_on_policy_algorithm_says_so():
+    with pytest.raises(ValueError, match=r"ppo is on-policy and takes no 'learning_starts' \(an off-policy algorithm's"):
+        registry.check_hyperparams("ppo", {"learning_starts": 100}, "-params")
+    with pytest.raises(ValueError, match=r"did you mean 'learning_rate' for 'learning_rat'"):
+        registry.check_hyperparams("ppo", {"learning_rat": 1e-3}, "-params")

@@ -229,8 +229,13 @@ def test_panels_without_a_value_or_with_saturated_correlations_are_named_not_dra
 def test_report_refuses_to_overwrite_and_needs_runs(tmp_path, capsys):
     fake_run(tmp_path / "runs", "serasac", 1, 0, [0.0, 1.0, 2.0])
     main(["report", str(tmp_path / "runs"), "--out", str(tmp_path / "out"), "--reps", str(REPS)])
+    printed = capsys.readouterr()
+    # The terminal gets the headline, each task's returns table, and where the rest is; not the whole report
+    assert printed.out.startswith("## sb3_sera/HalfCheetah-6x1-v0, 3,000 steps\n\n| variant | n | final return IQM")
+    assert "![" not in printed.out and "### " not in printed.out
+    assert f"Report, with every claim, figure and note: {tmp_path / 'out' / 'report.md'}" in printed.out
     # What the report is doing, on stderr
-    progress = capsys.readouterr().err
+    progress = printed.err
     assert "report: 1 finished runs, 0 folders left out" in progress
     assert "report: section 1/1, sb3_sera/HalfCheetah-6x1-v0 at 3,000 steps: table, claims, figures" in progress
     with pytest.raises(SystemExit) as exit_info:
@@ -380,3 +385,13 @@ def test_resumed_runs_are_listed_with_their_step_and_how_it_is_known():
         "- sac, seed 1: resumed from step 20,000; from the monitor's clock",
     ]
     assert resumed_lines([]) == []
+
+
+def test_a_curves_title_says_where_the_curves_end_when_before_the_budget():
+    from types import SimpleNamespace
+
+    from sera_study.report.write import _curves_title
+
+    group = SimpleNamespace(runs=[SimpleNamespace(timesteps=[1000, 2000, 3000, 4000])])
+    assert _curves_title("HalfCheetah-v5", 4500, [group]) == "HalfCheetah-v5, 4,500-step runs (last evaluation at 4,000)"
+    assert _curves_title("HalfCheetah-v5", 4000, [group]) == "HalfCheetah-v5, 4,000-step runs"

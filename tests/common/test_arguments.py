@@ -164,3 +164,37 @@ def test_controllers_name_the_agents_they_expect(controllers):
     assert "'walker_7'" in message and "'agent_0', 'agent_1', 'agent_2'" in message and "keyed by agent name" in message
     with pytest.raises(ValueError, match=r"expected a dict of per-agent observations.*got ndarray"):
         controllers(np.zeros(18, dtype=np.float32))
+
+
+@pytest.mark.parametrize(
+    ("algo", "policy", "env", "typo", "meant"),
+    [
+        (SERASAC, "MlpPolicy", "Pendulum-v1", "n_critic", "n_critics"),
+        (MASAC, "CTDEPolicy", "sb3_sera/SimpleSpread-v0", "share_actors", "share_actor"),
+    ],
+)
+def test_a_typo_in_policy_kwargs_names_it_and_its_close_matches(algo, policy, env, typo, meant):
+    with pytest.raises(TypeError, match=rf"got '{typo}' in policy_kwargs\. Did you mean '{meant}'") as error:
+        algo(policy, env, policy_kwargs={typo: 3})
+    assert meant in listed_keywords(str(error.value))
+
+
+@pytest.mark.parametrize(
+    ("critic_archs", "message"),
+    [
+        ("big", r"critic_archs='big' is invalid: give a list of n_critics=5 lists of hidden layer sizes"),
+        (["64", "64"], r"critic_archs\[0\]='64' is invalid: each critic's entry is a list of hidden layer sizes"),
+        ([[64]] * 4, r"critic_archs has 4 entries but n_critics=5"),
+    ],
+)
+def test_critic_archs_that_are_not_lists_of_sizes_are_named(critic_archs, message):
+    with pytest.raises(ValueError, match=message):
+        SERASAC("MlpPolicy", "Pendulum-v1", policy_kwargs=dict(critic_archs=critic_archs))
+
+
+def test_one_actor_for_agents_of_different_action_sizes_is_advised_against_sharing():
+    # MaMuJoCo's Humanoid 9|8: the observations padded alike, the agents acting 9 and 8 joints, which no padding helps
+    humanoid = gym.make("sb3_sera/MaMuJoCo-v0", scenario="Humanoid", agent_conf="9|8", agent_indicator=True)
+    with pytest.raises(ValueError, match=r"one actor cannot act for agents whose action sizes differ") as error:
+        MASAC("CTDEPolicy", humanoid, buffer_size=100, policy_kwargs=dict(share_actor=True))
+    assert "agent_indicator" not in str(error.value)

@@ -3,6 +3,7 @@ The masked Adam and Polyak updates of a compiled step against torch's own by han
 its random draws, and the compiled actor ``learn()`` acts through.
 """
 
+import re
 from typing import NamedTuple
 
 import pytest
@@ -224,3 +225,19 @@ def test_a_step_compiled_where_the_locality_pass_moves_draws_draws_as_eager(monk
         th.manual_seed(5)
         result = compiled(x)
     th.testing.assert_close(result, _used_in_reverse(x, *(reversed(drawn) if locality else drawn)))
+
+
+def test_a_compiled_steps_first_call_says_it_compiles_and_logs_how_long_it_took(capsys):
+    from stable_baselines3.common.logger import configure
+
+    from sb3_sera import SERASAC
+
+    model = SERASAC("MlpPolicy", "Pendulum-v1", buffer_size=100, verbose=1)
+    model.set_logger(configure(None, []))
+    calls = []
+    step = model._timing_the_compilation(lambda *args, **kwargs: calls.append(args) or "output")
+    assert step(1) == "output" and step(2) == "output" and calls == [(1,), (2,)]
+    printed = capsys.readouterr().out
+    assert printed.count("SERASAC: compiling its gradient step (compile_update=False)") == 1
+    assert re.search(r"SERASAC: gradient step compiled in \d+\.\d s", printed)
+    assert model.logger.name_to_value["time/compile_seconds"] >= 0

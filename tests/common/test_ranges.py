@@ -145,3 +145,10 @@ def test_every_rule_names_its_parameter():
     }
     with pytest.raises(ValueError, match=r"^train_freq=\(1, 'epoch'\) is invalid"):
         check_hyperparameters({"train_freq": (1, "epoch")})
+
+
+@pytest.mark.parametrize("value", ["x", float("nan"), None])
+def test_target_entropy_is_auto_or_a_finite_number(value):
+    with pytest.raises(ValueError, match=r"target_entropy=.* is invalid: expected 'auto' \(minus the action size\)"):
+        SERASAC("MlpPolicy", ENV_ID, target_entropy=value, **SMALL_BUFFER)
+    assert SERASAC("MlpPolicy", ENV_ID, target_entropy=-2, **SMALL_BUFFER).target_entropy == -2.0

@@ -218,3 +218,23 @@ def test_a_device_the_machine_lacks_is_named_in_a_warning(algo, policy, env):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         algo(policy, env, device="cpu")
+
+
+def test_learn_warns_once_where_torchs_threads_outnumber_the_processs_cores(monkeypatch):
+    from sb3_sera.common import naming
+
+    monkeypatch.setattr(naming, "_warned_threads", False)
+    monkeypatch.setattr(naming.os, "sched_getaffinity", lambda pid: {0}, raising=False)
+    monkeypatch.setattr(naming.th, "get_num_threads", lambda: 4)
+    model = SERASAC("MlpPolicy", ENV_ID, **SMALL)
+    with pytest.warns(UserWarning, match=r"torch runs 4 threads but this process may use 1 core\(s\).*set_num_threads\(1\)"):
+        model.learn(10)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        model.learn(60)  # once a process
+    # As many threads as cores: nothing to say
+    monkeypatch.setattr(naming, "_warned_threads", False)
+    monkeypatch.setattr(naming.th, "get_num_threads", lambda: 1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        model.learn(60)

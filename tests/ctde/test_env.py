@@ -3,6 +3,7 @@
 import os
 import subprocess
 import sys
+import warnings
 
 import gymnasium as gym
 import numpy as np
@@ -324,3 +325,14 @@ def test_commands_route_mujoco_warnings_and_write_no_log_file(tmp_path):
     # Any other MuJoCo warning reaches Python's warnings, where a filter can silence or raise it
     assert "['MuJoCo: another warning']" in done.stdout
     assert not (tmp_path / "MUJOCO_LOG.TXT").exists()
+
+
+def test_rewards_of_opposite_signs_are_said_once_to_make_a_team_reward_of_a_competitive_env():
+    env = gym.make("sb3_sera/SimpleSpread-v0").unwrapped
+    assert isinstance(env, CTDEEnv)
+    with pytest.warns(UserWarning, match=r"the agents' rewards differ in sign .*: the team reward is their mean \(-0\.5\)"):
+        assert env.team_reward({"adversary_0": -2.0, "agent_0": 1.0}) == -0.5
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert env.team_reward({"adversary_0": -2.0, "agent_0": 1.0}) == -0.5  # said once
+        assert env.team_reward({"agent_0": -1.0, "agent_1": -3.0}) == -2.0  # one sign: a cooperative team's spread

@@ -8,6 +8,7 @@ the algorithm its own (``CompiledUpdate._after_compiled_steps``).
 
 import io
 import pathlib
+import time
 from collections.abc import Callable, Sequence
 from typing import Any, ClassVar, NamedTuple, TypeVar
 
@@ -125,7 +126,36 @@ class CompiledUpdate(OffPolicyAlgorithm):
             )
         self.compile_update = available_mode(self.compile_update, self.device)
         self._adam_plans = self._optimizer_plans()
-        self._compiled_step = compile_step(self._gradient_step_graph, self.compile_update)
+        self._compiled_step = self._timing_the_compilation(compile_step(self._gradient_step_graph, self.compile_update))
+
+    def _timing_the_compilation(self, step: Callable[..., StepOutput]) -> Callable[..., StepOutput]:
+        """
+        ``step``, saying on its first call, which compiles it, that it compiles (with ``verbose`` >= 1) and how long it
+        took: printed with ``verbose`` >= 1, and logged as ``time/compile_seconds`` where the model has a logger.
+        """
+        compiled = False
+
+        def run(*args: Any, **kwargs: Any) -> StepOutput:
+            nonlocal compiled
+            if compiled:
+                return step(*args, **kwargs)
+            name = type(self).__name__
+            if self.verbose >= 1:
+                print(
+                    f"{name}: compiling its gradient step (compile_update={self.compile_update!r}); this first call "
+                    "waits for it, a minute or more on a CPU with an empty Inductor cache (docs/speed.md)"
+                )
+            start = time.perf_counter()
+            output = step(*args, **kwargs)
+            seconds = time.perf_counter() - start
+            compiled = True
+            if self.verbose >= 1:
+                print(f"{name}: gradient step compiled in {seconds:.1f} s")
+            if getattr(self, "_logger", None) is not None:
+                self.logger.record("time/compile_seconds", seconds)
+            return output
+
+        return run
 
     def _optimizer_plans(self) -> list[AdamPlan]:
         """The Adam plans of the optimizers the step updates, in the order of its ``learning_rates`` and ``states``."""

@@ -27,6 +27,12 @@ from sera_study.report.load import Skipped, load_runs
 from sera_study.report.tables import section_notes, section_table
 
 
+def _curves_title(env_id: str, budget: int, groups: Sequence[RunGroup]) -> str:
+    """The learning curves' title: the task and the runs' budget, and the last evaluation where the curves end before it."""
+    last = max((run.timesteps[-1] for group in groups for run in group.runs if run.timesteps), default=budget)
+    return f"{env_id}, {budget:,}-step runs" + (f" (last evaluation at {last:,})" if last < budget else "")
+
+
 def write_report(
     runs: Sequence[RunResult],
     out: str | Path,
@@ -85,7 +91,7 @@ def write_report(
             groups,
             attribute="returns",
             ylabel="evaluation return",
-            title=f"{env_id}, {budget:,} steps",
+            title=_curves_title(env_id, budget, groups),
             path=folder / f"{stem}_curves.png",
             colors=colors,
             reps=reps,
