@@ -18,9 +18,11 @@ def route_mujoco_warnings() -> None:
         import mujoco
     except ImportError:
         return
-    config = mujoco.MjLogConfig.get()
-    config.logto_file = False
-    config.set()
+    if hasattr(mujoco, "MjLogConfig"):
+        # MuJoCo 4 logs to the file by its configuration; MuJoCo 3 only where no handler is set (below)
+        config = mujoco.MjLogConfig.get()
+        config.logto_file = False
+        config.set()
 
     def handler(message: str) -> None:
         if not any(known in message for known in KNOWN_MODEL_WARNINGS):

@@ -73,6 +73,10 @@ def _mujoco_log_to_console_only() -> Iterator[None]:
     """MuJoCo's warnings go to the console only, not to ``MUJOCO_LOG.TXT`` in the working directory."""
     import mujoco
 
+    if not hasattr(mujoco, "MjLogConfig"):
+        # MuJoCo 3: no file while a warning handler is set (sb3_sera's import sets one)
+        yield
+        return
     saved = mujoco.MjLogConfig.get()
     config = mujoco.MjLogConfig.get()
     config.logto_file = False

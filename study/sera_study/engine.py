@@ -129,15 +129,21 @@ PROGRESS_FILE = ".progress"
 
 
 class ProgressFile(BaseCallback):
-    """Writes the model's step count to a file every ``every`` calls, for the progress bar of the command."""
+    """
+    Writes the model's step count to a file, for the progress bar of the command: at the first step, then whenever
+    ``seconds`` have passed since the last write, so that the bar moves with the steps made whatever their rate.
+    """
 
-    def __init__(self, path: Path, every: int = 500) -> None:
+    def __init__(self, path: Path, seconds: float = 1.0) -> None:
         super().__init__()
-        self.path, self.every = path, every
+        self.path, self.seconds = path, seconds
+        self._written: float | None = None
 
     def _on_step(self) -> bool:
-        if self.n_calls % self.every == 0:
+        now = time.monotonic()
+        if self._written is None or now - self._written >= self.seconds:
             write_atomic(self.path, str(self.num_timesteps))
+            self._written = now
         return True
 
 

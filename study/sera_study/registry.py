@@ -6,6 +6,7 @@ file, else rl-zoo3's own), with the keys each algorithm accepts.
 
 import difflib
 import inspect
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -30,7 +31,10 @@ SHARED_SETTINGS = ("learning_starts", "batch_size", "buffer_size", "gamma", "tau
 
 def algorithm_classes() -> dict[str, type[BaseAlgorithm]]:
     """rl-zoo3's algorithms by lower-case name, with this package's added."""
-    from rl_zoo3.utils import ALGOS
+    with warnings.catch_warnings():
+        # rl-zoo3 imports huggingface_hub, whose tqdm.auto warns in a notebook without ipywidgets: no bar is drawn here
+        warnings.filterwarnings("ignore", message="IProgress not found")
+        from rl_zoo3.utils import ALGOS
 
     return {**ALGOS, **ZOO_ALGOS}
 

@@ -172,3 +172,19 @@ def test_on_ray_a_task_starts_only_for_a_run_left_to_make(tmp_path, monkeypatch)
     outcomes = backends._execute_on_ray(specs, folders, {1: "read back"}, "address", False, 0)
     assert outcomes == [0, "read back", 2]
     assert given == [(0, str(folders[0].resolve())), (2, str(folders[2].resolve()))]
+
+
+def test_the_progress_file_follows_the_steps_by_time_not_by_a_count(tmp_path, monkeypatch):
+    from sera_study import engine
+
+    clock = iter([0.0, 0.3, 0.6, 1.2, 1.5, 2.4])
+    monkeypatch.setattr(engine.time, "monotonic", lambda: next(clock))
+    progress = engine.ProgressFile(tmp_path / PROGRESS_FILE, seconds=1.0)
+    progress.model = types.SimpleNamespace(num_timesteps=0)
+    written = []
+    for step in range(1, 7):
+        progress.model.num_timesteps = step
+        progress.on_step()
+        written.append(int((tmp_path / PROGRESS_FILE).read_text()))
+    # The first step, then the first step a second or more after the last write: 1, 4 (at 1.2 s) and 6 (at 2.4 s)
+    assert written == [1, 1, 1, 4, 4, 6]

@@ -92,9 +92,10 @@ class TestOneLocalInstance:
             assert attempt["cuda_visible_devices"] == "0" and record["device"] == "cpu"
 
     def test_a_run_that_fails_for_its_own_reasons_is_not_retried(self, address, tmp_path):
-        # A non-finite loss at the first gradient step, after the first evaluation (the run's folder stays): the
-        # run's own failure, which a retry would only repeat
-        grid = GRID.replace("learning_starts: 50", "learning_starts: 150, target_entropy: .nan")
+        # A non-finite loss at the first gradient step, after the first evaluation (the run's folder stays): a target
+        # entropy past float32's range, which the entropy loss turns into inf and nan; the run's own failure, which a
+        # retry would only repeat
+        grid = GRID.replace("learning_starts: 50", "learning_starts: 150, target_entropy: 1.0e+300")
         with pytest.raises(RuntimeError, match=r"2 of 2 run\(s\) failed: .*FloatingPointError"):
             bench.run_grid(write(tmp_path, grid), str(tmp_path / "out"), ray_address=address)
         for variant in ("serasac", "ensemble_mean"):

@@ -1,4 +1,7 @@
-"""The notebooks: opened on a ledger (the default, no training), trained at a tiny budget, and stored with outputs."""
+"""
+The notebooks: the first-run comparison trained at a tiny budget; the two that open on a ledger (the default, no
+training) and train when asked; every one stored with its outputs, free of warnings and of this machine's paths.
+"""
 
 import json
 from pathlib import Path
@@ -13,7 +16,11 @@ from sb3_sera.common.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from tests.helpers import ROOT
 
 NOTEBOOKS = sorted((ROOT / "notebooks").glob("*.ipynb"))
-# Each notebook's run folder under SB3_SERA_NOTEBOOK_OUT, and the study it reads from the ledger
+#: The notebook a user runs first: SERASAC against SAC, trained in it
+FIRST_RUN = ROOT / "notebooks" / "serasac_vs_sac_first_run.ipynb"
+#: The notebooks that open on the ledger
+LEDGER_NOTEBOOKS = [path for path in NOTEBOOKS if path != FIRST_RUN]
+# Each ledger notebook's run folder under SB3_SERA_NOTEBOOK_OUT, and the study it reads from the ledger
 RUN_FOLDERS = {"serasac_vs_sac": "single_agent", "serasac_vs_masac_multiagent": "multi_agent"}
 STUDIES = {
     "serasac_vs_sac": ("HalfCheetah-v5", ("serasac", "sac"), 5),
@@ -61,11 +68,24 @@ def ledger_run(ledger: Path, variant: str, env_id: str, seed: int, n_critics: in
     (folder / "result.json").write_text(json.dumps({"wall_time_s": 900.0}))
 
 
-def test_there_are_two_notebooks():
-    assert sorted(path.stem for path in NOTEBOOKS) == sorted(RUN_FOLDERS)
+def test_there_are_the_first_run_and_two_ledger_notebooks():
+    assert FIRST_RUN in NOTEBOOKS and sorted(path.stem for path in LEDGER_NOTEBOOKS) == sorted(RUN_FOLDERS)
 
 
-@pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda path: path.stem)
+def test_the_first_run_notebook_compares_serasac_with_sac_and_says_what_it_can_tell(tmp_path, monkeypatch):
+    notebook = execute(FIRST_RUN, tmp_path, monkeypatch, SB3_SERA_NOTEBOOK_STEPS="300")
+    text, images = outputs_of(notebook)
+    for name in ("SAC", "SERASAC"):
+        assert all(f"{name}, seed {seed}: 300 steps, last evaluation " in text for seed in (0, 1))
+        assert all(f"{name}, seed {seed}: " in text and "over 10 episodes (" in text for seed in (0, 1))
+    assert "Means over 2 seeds: SERASAC " in text and "no test can tell the two apart at p < 0.05" in text
+    # The learning curves and SERA's diagnostics (per-critic rates, disagreement, TD-target variance), no warning
+    assert images == 2
+    assert not [output for cell in notebook.cells for output in cell.get("outputs", []) if output.get("name") == "stderr"]
+    assert not list(tmp_path.iterdir())  # nothing written beside the notebook
+
+
+@pytest.mark.parametrize("path", LEDGER_NOTEBOOKS, ids=lambda path: path.stem)
 def test_notebook_opens_on_the_ledger_without_training(path, tmp_path, monkeypatch):
     env_id, variants, n_critics = STUDIES[path.stem]
     ledger = tmp_path / "ledger"
@@ -85,7 +105,7 @@ def test_notebook_opens_on_the_ledger_without_training(path, tmp_path, monkeypat
     assert not list(cwd.iterdir()) and not list(ledger.rglob("*.zip")) and not list(temporary.iterdir())
 
 
-@pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda path: path.stem)
+@pytest.mark.parametrize("path", LEDGER_NOTEBOOKS, ids=lambda path: path.stem)
 def test_notebook_trains_when_asked(path, tmp_path, monkeypatch):
     notebook = execute(
         path,
@@ -112,6 +132,12 @@ def test_notebooks_are_stored_with_their_outputs(path):
     code = [cell for cell in notebook.cells if cell.cell_type == "code"]
     assert all(cell.get("execution_count") for cell in code)
     text, images = outputs_of(notebook)
-    assert " runs of " in text
+    assert " runs of " in text or path == FIRST_RUN
     if not text.startswith("0 runs"):
-        assert images >= 3
+        assert images >= 2
+    # Nothing of this machine, and no warning, in what a reader sees
+    streams = [
+        output for cell in notebook.cells for output in cell.get("outputs", []) if output.get("output_type") == "stream"
+    ]
+    assert not [output for output in streams if output.get("name") == "stderr"]
+    assert not any(folder in text for folder in ("/work/", "/tmp/", "/home/", "/root/"))

@@ -417,3 +417,22 @@ def test_invalid_hyperparameters(kwargs, message):
 def test_discrete_actions_are_not_supported():
     with pytest.raises(AssertionError, match="only supports"):
         SERASAC("MlpPolicy", "CartPole-v1")
+
+
+def test_trains_with_hindsight_experience_replay_on_a_goal_env_and_goes_on_after_loading(tmp_path):
+    # SB3's HER with SERASAC's MultiInputPolicy, as SB3's own HER tests run it: continuous bit flipping
+    from stable_baselines3 import HerReplayBuffer
+    from stable_baselines3.common.envs import BitFlippingEnv
+
+    env = BitFlippingEnv(n_bits=4, continuous=True)
+    her = dict(
+        replay_buffer_class=HerReplayBuffer, replay_buffer_kwargs=dict(n_sampled_goal=2, goal_selection_strategy="future")
+    )
+    model = SERASAC("MultiInputPolicy", env, learning_starts=100, batch_size=16, buffer_size=500, seed=0, **her)
+    model.learn(150)
+    assert model._n_updates > 0 and isinstance(model.replay_buffer, HerReplayBuffer)
+    model.save(tmp_path / "her")
+    loaded = SERASAC.load(tmp_path / "her", env=env)
+    assert isinstance(loaded.replay_buffer, HerReplayBuffer)
+    loaded.learn(30, reset_num_timesteps=False)
+    assert loaded.num_timesteps == 180

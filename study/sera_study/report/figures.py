@@ -5,6 +5,7 @@ is the IQM over a group's runs with its interval, on one grid when runs were eva
 has the same colour in every figure.
 """
 
+import warnings
 from collections import defaultdict
 from collections.abc import Sequence
 from pathlib import Path
@@ -73,9 +74,21 @@ def pyplot() -> Any:
 
 
 def save_figure(fig: Any, path: Path) -> None:
-    fig.tight_layout()
+    """
+    Save ``fig`` at ``path`` and close it, laid out by matplotlib's tight layout, or, where that layout cannot fit
+    the axes (a grid of many panels under a title), cropped to what it draws.
+    """
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        fig.tight_layout()
+    fitted = True
+    for warning in caught:
+        if "Tight layout not applied" in str(warning.message):
+            fitted = False
+        else:
+            warnings.warn_explicit(warning.message, warning.category, warning.filename, warning.lineno)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, **({} if fitted else {"bbox_inches": "tight"}))
     pyplot().close(fig)
 
 
