@@ -10,6 +10,7 @@ damaged is named with the file and the reason and left as it is. Any other run g
 the next free id, its records written at once (atomically). Every decision is announced per run.
 """
 
+import multiprocessing
 import os
 import shutil
 import sys
@@ -40,7 +41,13 @@ from sera_study.specs import RunSpec
 
 
 def notice(message: str) -> None:
-    """Say ``message`` to the user: on standard error, where a command's progress and warnings go."""
+    """
+    Say ``message`` to the user: on standard error, where a command's progress and warnings go. From a run's worker
+    process, whose command draws its progress bar on the same stream without ending the line, on a line of its own:
+    the bar's line cleared on a terminal, ended in a log file.
+    """
+    if multiprocessing.parent_process() is not None:
+        message = ("\r\033[K" if sys.stderr.isatty() else "\n") + message
     print(message, file=sys.stderr)
 
 

@@ -1,6 +1,7 @@
 """`compare`/`bench` as processes: one Ctrl-C stops every worker, a killed command takes its workers with it, two
 commands never train into one output folder, and only a run left to make is given a worker or a Ray task."""
 
+import multiprocessing
 import os
 import signal
 import subprocess
@@ -188,3 +189,20 @@ def test_the_progress_file_follows_the_steps_by_time_not_by_a_count(tmp_path, mo
         written.append(int((tmp_path / PROGRESS_FILE).read_text()))
     # The first step, then the first step a second or more after the last write: 1, 4 (at 1.2 s) and 6 (at 2.4 s)
     assert written == [1, 1, 1, 4, 4, 6]
+
+
+def _notice_into(path: str) -> None:
+    """A run worker's notice, its standard error a file (a log)."""
+    from sera_study.folders import notice
+
+    with open(path, "w") as log:
+        sys.stderr = log
+        notice("logs/x: resumed from step 2,000")
+
+
+def test_a_workers_notice_starts_a_line_of_its_own_after_the_commands_bar(tmp_path):
+    # The command's bar ends no line in a log file; a notice from a worker process must not be glued to it
+    worker = multiprocessing.get_context("spawn").Process(target=_notice_into, args=(str(tmp_path / "log"),))
+    worker.start()
+    worker.join(60)
+    assert (tmp_path / "log").read_text() == "\nlogs/x: resumed from step 2,000\n"
