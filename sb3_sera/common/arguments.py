@@ -39,10 +39,11 @@ def keyword_names(signature: inspect.Signature) -> list[str] | None:
     return [parameter.name for parameter in parameters if parameter.kind in _NAMED]
 
 
-def policy_keyword_names(policy_class: type) -> list[str]:
+def _policy_keywords(policy_class: type) -> tuple[list[str], bool]:
     """
     The keywords a policy class takes in ``policy_kwargs``: its constructor's, and, while a constructor passes
-    ``**kwargs`` on, those of the next constructor in its bases (SERA's ``CnnPolicy`` passes them to ``SERAPolicy``).
+    ``**kwargs`` on, those of the next constructor in its bases; and whether that chain ends (a constructor without
+    ``**kwargs``), so that the names are all it takes.
     """
     names: list[str] = []
     for base in policy_class.__mro__:
@@ -52,20 +53,16 @@ def policy_keyword_names(policy_class: type) -> list[str]:
         parameters = list(inspect.signature(init).parameters.values())[1:]  # after self
         names += [p.name for p in parameters if p.kind in _NAMED and p.name not in names + list(_ALGORITHM_FILLED)]
         if not any(parameter.kind is inspect.Parameter.VAR_KEYWORD for parameter in parameters):
-            break
-    return names
+            return names, True
+    return names, False
 
 
-def takes_only_named_keywords(policy_class: type) -> bool:
-    """Whether :func:`policy_keyword_names` is all ``policy_class`` takes: its chain of ``**kwargs`` ends."""
-    for base in policy_class.__mro__:
-        init = base.__dict__.get("__init__")
-        if init is None:
-            continue
-        parameters = list(inspect.signature(init).parameters.values())
-        if not any(parameter.kind is inspect.Parameter.VAR_KEYWORD for parameter in parameters):
-            return True
-    return False
+def policy_keyword_names(policy_class: type) -> list[str]:
+    """
+    The keywords a policy class takes in ``policy_kwargs``: its constructor's, and, while a constructor passes
+    ``**kwargs`` on, those of the next constructor in its bases (SERA's ``CnnPolicy`` passes them to ``SERAPolicy``).
+    """
+    return _policy_keywords(policy_class)[0]
 
 
 def check_policy_keywords(algorithm: type, policy: Any, policy_kwargs: Any) -> None:
@@ -78,9 +75,9 @@ def check_policy_keywords(algorithm: type, policy: Any, policy_kwargs: Any) -> N
     if not isinstance(policy_kwargs, Mapping) or len(policy_classes) != 1:
         return
     (policy_class,) = policy_classes
-    if not takes_only_named_keywords(policy_class):
+    accepted, closed = _policy_keywords(policy_class)
+    if not closed:
         return
-    accepted = policy_keyword_names(policy_class)
     unknown = [keyword for keyword in policy_kwargs if keyword not in accepted]
     if not unknown:
         return

@@ -66,8 +66,9 @@ class CompiledUpdate(OffPolicyAlgorithm):
     The action: ``learn()`` acts eagerly, as SB3 does (a compiled actor measured slower on a GPU: ``docs/speed.md``).
 
     An algorithm supplies ``_gradient_step_graph`` and ``_optimizer_plans``, calls ``_setup_compiled_update`` at the
-    end of its ``_setup_model`` and ``_train_compiled`` from its ``train`` where ``_compiled_step`` is set; the rest
-    has defaults for SAC's family to override (the developer guide's "Compiling an algorithm").
+    end of its ``_setup_model`` and ``_train_steps`` from its ``train`` (the compiled step where ``_compiled_step`` is
+    set, else its eager steps); the rest has defaults for SAC's family to override (the developer guide's "Compiling
+    an algorithm").
     """
 
     #: What the step checks, in the order of its ``finite`` flags (a cause before its consequences)
