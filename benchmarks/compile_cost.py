@@ -8,7 +8,8 @@ build on the machine).
     python benchmarks/compile_cost.py --algo iet --policy CTDEPolicy --env sb3_sera/SimpleSpread-v0
     python benchmarks/compile_cost.py --algo serasac --env Pendulum-v1 --policy-kwargs "{'net_arch': [16]}"
 
-``--this-cache`` measures one build on the cache the environment names (``TORCHINDUCTOR_CACHE_DIR``, else Inductor's
+``--cpp-wrapper`` compiles with Inductor's C++ wrapper (``torch._inductor.config.cpp_wrapper``). ``--this-cache``
+measures one build on the cache the environment names (``TORCHINDUCTOR_CACHE_DIR``, else Inductor's
 default folder), cold or warm as that cache is.
 """
 
@@ -29,9 +30,12 @@ def cpu_seconds() -> tuple[float, float]:
     return own.ru_utime + own.ru_stime, children.ru_utime + children.ru_stime
 
 
-def build(algo: str, policy: str, env: str, learning_starts: int, policy_kwargs: dict[str, Any] | None) -> dict[str, Any]:
+def build(
+    algo: str, policy: str, env: str, learning_starts: int, policy_kwargs: dict[str, Any] | None, cpp_wrapper: bool
+) -> dict[str, Any]:
     """Build the compiled model, train it to its first gradient step, and say what that cost (this process)."""
     import torch as th
+    import torch._inductor.config
     from torch._dynamo.utils import counters
 
     from sera_study.registry import algorithm_classes
@@ -49,7 +53,8 @@ def build(algo: str, policy: str, env: str, learning_starts: int, policy_kwargs:
         buffer_size=1_000,
         policy_kwargs=policy_kwargs,
     )
-    model.learn(learning_starts + 1)
+    with torch._inductor.config.patch(cpp_wrapper=cpp_wrapper):  # read where the step compiles, at its first call
+        model.learn(learning_starts + 1)
     after = cpu_seconds()
     return {
         "operations": counters["stats"]["calls_captured"],
@@ -62,6 +67,7 @@ def measure(args: argparse.Namespace, cache: str | None) -> dict[str, Any]:
     """One build in a new Python process, on Inductor's cache in ``cache`` (None: the environment's)."""
     command = [sys.executable, __file__, "--child", "--algo", args.algo, "--policy", args.policy, "--env", args.env]
     command += ["--learning-starts", str(args.learning_starts), "--policy-kwargs", repr(args.policy_kwargs)]
+    command += ["--cpp-wrapper"] if args.cpp_wrapper else []
     env = {**os.environ, "OMP_NUM_THREADS": "1", **({"TORCHINDUCTOR_CACHE_DIR": cache} if cache else {})}
     completed = subprocess.run(command, capture_output=True, text=True, env=env, check=False)
     if completed.returncode != 0:
@@ -77,10 +83,14 @@ def main() -> None:
     parser.add_argument("--learning-starts", type=int, default=64)
     parser.add_argument("--policy-kwargs", type=ast.literal_eval, help="the model's policy_kwargs, a Python dict literal")
     parser.add_argument("--this-cache", action="store_true", help="one build on the environment's Inductor cache")
+    parser.add_argument(
+        "--cpp-wrapper", action="store_true", help="Inductor's C++ wrapper (torch._inductor.config.cpp_wrapper)"
+    )
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
-        print(json.dumps(build(args.algo, args.policy, args.env, args.learning_starts, args.policy_kwargs)))
+        cost = build(args.algo, args.policy, args.env, args.learning_starts, args.policy_kwargs, args.cpp_wrapper)
+        print(json.dumps(cost))
         return
     rows = []
     if args.this_cache:
@@ -88,7 +98,11 @@ def main() -> None:
     else:
         with tempfile.TemporaryDirectory(prefix="compile_cost_") as cache:
             rows += [("cold", measure(args, cache)), ("warm", measure(args, cache))]
-    print(f"{args.algo} ({args.policy}) on {args.env}, policy_kwargs {args.policy_kwargs}: CPU seconds of one build")
+    wrapper = "C++" if args.cpp_wrapper else "Python"
+    print(
+        f"{args.algo} ({args.policy}) on {args.env}, policy_kwargs {args.policy_kwargs}, Inductor's {wrapper} wrapper: "
+        "CPU seconds of one build"
+    )
     print("| build | operations traced | own (Dynamo, AOT, Inductor) | C++ compiler | total |")
     print("|---|---|---|---|---|")
     for name, cost in rows:

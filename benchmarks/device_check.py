@@ -29,7 +29,10 @@ process, a table of
   replays back to back, timed with CUDA events), an action (``_sample_action``) eager and through the compiled
   actor, and the host reads per env step (`benchmarks/host_reads.py`);
 - ``many``: 1, 4 and 8 processes (``--processes``) of SERASAC ``"reduce-overhead"`` learning on ``--env`` on the one
-  device at once: each one's ``learn()`` rate and their total, against one process's.
+  device at once: each one's ``learn()`` rate and their total, against one process's;
+- ``floor``: the host floor (``host_floor.py``): SB3 SAC, SERASAC and MASAC at compute-free networks on Pendulum-v1
+  and ``--ma-env``, the milliseconds an env step and its split (acting, env, buffer, ``train()``'s host code, the
+  step, the read), a table of its own after the others.
 
 Each rate is the median of ``--blocks`` blocks of ``--block-steps`` steps, with its ratio to SB3 SAC's rate (the
 single-agent rows) or to eager SERASAC's on the multi-agent task (the multi-agent rows). Every section takes about 13
@@ -55,6 +58,7 @@ from typing import Any
 
 import compiled_vs_eager
 import gymnasium as gym
+import host_floor
 import torch as th
 from host_reads import HostReads
 from stable_baselines3 import SAC
@@ -66,7 +70,7 @@ from sb3_sera import MASAC, SERASAC
 from sb3_sera.common.compiled import CompiledUpdate, CUDAGraphSkipWarning
 from sb3_sera.common.mujoco_log import route_mujoco_warnings
 
-SECTIONS = ("cudagraphs", "equality", "order", "draws", "gradients", "speed", "split", "many")
+SECTIONS = ("cudagraphs", "equality", "order", "draws", "gradients", "speed", "split", "many", "floor")
 
 
 def single_agent_models(env_id: str, cuda: bool) -> dict[str, Callable[[dict[str, Any]], BaseAlgorithm]]:
@@ -305,6 +309,10 @@ def main() -> None:
         emit(split_rows({name: single[name] for name in ("SB3 SAC eager", compiled)}, args.split_steps, cuda))
     if "many" in args.sections:
         emit(many_rows(args.env, common, args.processes, args.many_steps, cuda))
+    if "floor" in args.sections:
+        constructors = host_floor.floor_models("Pendulum-v1", args.ma_env, args.device)
+        floor = {name: host_floor.build(constructor) for name, constructor in constructors.items()}
+        emit(["", *host_floor.floor_table(floor, args.blocks, args.block_steps)])
     seconds = time.perf_counter() - started
     device = f"{th.cuda.get_device_name()}, CUDA {th.version.cuda}" if cuda else "CPU"
     print(f"\n{device}, torch {th.__version__}; {seconds:.0f} s", flush=True)

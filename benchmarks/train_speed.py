@@ -10,10 +10,8 @@ Both models are built with their defaults on the same task, their replay buffers
 With ``--compile``, a third model, SERASAC with its whole gradient step compiled (``compile_update=True``, or
 ``"reduce-overhead"``, replayed as a CUDA graph, with ``--cuda-graphs``), joins the interleave, and the script prints
 how many graphs and graph breaks Dynamo finds in that step (one graph, no break, when it compiles whole).
-``--device cuda`` runs all three on a GPU. With ``--cpp-wrapper`` (CPU), a fourth, the compiled SERASAC with
-Inductor's C++ wrapper (``torch._inductor.config.cpp_wrapper``: the generated code calls its kernels from C++, not
-Python; its compilation takes minutes), joins too. With ``--device-buffer``, the compiled SERASAC drawing its
-batches from a :class:`~sb3_sera.common.device_buffer.DeviceReplayBuffer` joins too (``SERASAC+compile+device``).
+``--device cuda`` runs all three on a GPU. With ``--device-buffer``, the compiled SERASAC drawing its batches from a
+:class:`~sb3_sera.common.device_buffer.DeviceReplayBuffer` joins too (``SERASAC+compile+device``).
 
 Each figure is the median over blocks, with the interquartile range; the ratio is SAC's median rate over
 SERASAC's (the wall-time cost of SERASAC per gradient step, in units of SAC's).
@@ -66,14 +64,11 @@ def main() -> None:
     parser.add_argument("--compile", action="store_true", help="also time SERASAC with its gradient step compiled")
     parser.add_argument("--cuda-graphs", action="store_true", help="with --compile: compile_update='reduce-overhead'")
     parser.add_argument("--device", default="cpu", help="torch device of all models, e.g. cuda")
-    parser.add_argument("--cpp-wrapper", action="store_true", help="with --compile: also time it with a C++ wrapper")
     parser.add_argument(
         "--device-buffer", action="store_true", help="with --compile: also time it with the replay buffer on the device"
     )
     args = parser.parse_args()
 
-    if args.cpp_wrapper and (not args.compile or args.device != "cpu"):
-        parser.error("--cpp-wrapper times a compiled step on the CPU: give it with --compile and --device cpu")
     th.set_num_threads(args.threads)
     if args.device_buffer and not args.compile:
         parser.error("--device-buffer times the compiled step with a DeviceReplayBuffer: give it with --compile")
@@ -90,9 +85,6 @@ def main() -> None:
         compile_mode=compile_mode,
     )
     models = {name: build(name) for name in names}
-    if args.compile and args.cpp_wrapper:
-        with torch._inductor.config.patch(cpp_wrapper=True):  # read when the step compiles, in build_model
-            models["SERASAC+cpp"] = build("SERASAC+cpp")
     device = th.cuda.get_device_name() if args.device.startswith("cuda") else "CPU"
     print(f"{args.env}, batch {args.batch_size}, {args.threads} torch thread(s), torch {th.__version__}, {device}")
     print(f"{'mode':<6} {'algorithm':<23} {'steps/s (median)':>17} {'IQR':>15}  ratio (SAC rate / rate)")

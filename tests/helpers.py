@@ -100,11 +100,15 @@ def assert_same_state(first: dict[str, th.Tensor], second: dict[str, th.Tensor])
         assert th.equal(first[key], second[key]), key
 
 
-def assert_close_state(first: dict[str, th.Tensor], second: dict[str, th.Tensor]) -> None:
-    """The two snapshots hold the same tensors under the same names up to float rounding (a compiled step's)."""
+def assert_close_state(first: dict[str, th.Tensor], second: dict[str, th.Tensor], context: str = "") -> None:
+    """
+    The two snapshots hold the same tensors under the same names up to float rounding (a compiled step's); ``context``
+    says what was done before, in the message.
+    """
     assert first.keys() == second.keys()
     for key, value in first.items():
-        np.testing.assert_allclose(value.float(), second[key].float(), rtol=1e-4, atol=1e-5, err_msg=key)
+        message = f"{context}: {key}" if context else key
+        np.testing.assert_allclose(value.float(), second[key].float(), rtol=1e-4, atol=1e-5, err_msg=message)
 
 
 def assert_schedule_does_not_recompile(model: Any, batch_size: int, rate: Any) -> None:
@@ -192,28 +196,87 @@ def assert_compiled_stays_with_eager(models: list[Any], batch_size: int, learn_s
     assert largest_difference() < COMPILED_BOUND
 
 
-def assert_set_parameters_reaches_the_compiled_step(build: Any, other: Any, batch_size: int, steps: int = 10) -> None:
+def assert_compiled_step_follows_every_change(
+    build: Any, other: Any, batch_size: int, path: Path, make_env: Any, steps: int = 5
+) -> None:
     """
-    ``build(False)`` and ``build(True)`` (eager, compiled), each given ``other``'s parameters and optimizer states by
-    SB3's ``set_parameters`` (a copy each, as from a file), train ``steps`` steps to the same state: the compiled step
-    reads what was loaded. Given ``other``'s own tensors, the compiled model copies them into the tensors its step
-    was compiled with (fixed addresses, which CUDA graphs replay), its optimizers hold those, and it shares none with
-    ``other`` (eager torch would: its ``load_state_dict`` keeps tensors of the right dtype and device).
+    What a user changes between ``train()`` calls reaches the compiled step: ``build(False)`` and ``build(True)``
+    (eager, compiled), given each change in turn, train ``steps`` steps (or learn) from the same random state to the
+    same state after each (:func:`assert_close_state`). The changes: a replaced replay buffer (``other``'s), SB3's
+    ``set_parameters`` with ``other``'s parameters and optimizer states (a copy each, as from a file), then with its
+    policy's parameters alone, a learning-rate schedule, the entropy coefficient (its learned value, or the fixed
+    tensor replaced) where there is one, ``set_env`` then ``learn()``, and ``save`` then ``load``.
+
+    Given ``other``'s own tensors, the compiled model copies them into the tensors its step was compiled with (fixed
+    addresses, which CUDA graphs replay), its optimizers hold those, and it shares none with ``other`` (eager torch
+    would: its ``load_state_dict`` keeps tensors of the right dtype and device).
     """
     from stable_baselines3.common.utils import set_random_seed
+
+    eager, compiled = models = [build(False), build(True)]
+
+    def train_both(change: str, learn: int = 0) -> None:
+        for model in models:
+            set_random_seed(7)
+            if learn:
+                model.set_random_seed(7)  # and the env's (set_env's is unseeded)
+                model.learn(learn, reset_num_timesteps=False)
+            else:
+                model.train(gradient_steps=steps, batch_size=batch_size)
+        assert_close_state(snapshot(eager, optimizers=True), snapshot(compiled, optimizers=True), change)
+
+    for model in models:
+        model.replay_buffer = copy.deepcopy(other.replay_buffer)
+    train_both("a replaced replay buffer")
+    for model in models:
+        model.set_parameters(copy.deepcopy(other.get_parameters()))
+    train_both("set_parameters with the optimizers")
+    for model in models:
+        model.set_parameters({"policy": copy.deepcopy(other.get_parameters()["policy"])}, exact_match=False)
+    train_both("set_parameters of the policy alone")
+    for model in models:
+        model.learning_rate = lambda progress: 2e-3 * progress
+        model._setup_lr_schedule()
+        model._current_progress_remaining = 0.5
+    train_both("a learning-rate schedule")
+    assert compiled.actor.optimizer.param_groups[0]["lr"] == pytest.approx(1e-3)
+    if getattr(compiled, "ent_coef_tensor", None) is not None or getattr(compiled, "log_ent_coef", None) is not None:
+        for model in models:
+            _change_the_entropy_coefficient(model, 0.05)
+        train_both("the entropy coefficient")
+    for model in models:
+        model.set_env(make_env())
+    train_both("set_env, then learn()", learn=batch_size)
+    for index, model in enumerate(models):
+        model.save(path / f"model_{index}")
+        loaded = type(model).load(path / f"model_{index}", env=make_env())
+        loaded.replay_buffer = model.replay_buffer
+        loaded.set_logger(model.logger)  # a loaded model has none before learn()
+        models[index] = loaded
+    eager, compiled = models
+    assert compiled._compiled_step is not None and eager._compiled_step is None
+    train_both("save, then load")
+
+    _assert_loaded_into_the_compiled_tensors(compiled, other, batch_size)
+
+
+def _change_the_entropy_coefficient(model: Any, value: float) -> None:
+    """Set ``model``'s entropy coefficient to ``value``: its learned one in place, or its fixed tensor replaced."""
+    if model.ent_coef_optimizer is None:
+        model.ent_coef_tensor = th.tensor(value, device=model.device)
+    else:
+        with th.no_grad():
+            model.log_ent_coef.fill_(np.log(value))
+
+
+def _assert_loaded_into_the_compiled_tensors(compiled: Any, other: Any, batch_size: int) -> None:
+    """What ``set_parameters`` loads is copied into the tensors ``compiled``'s step was compiled with, shared with no
+    other model (``other``, whose parameters were loaded, unchanged by the steps after)."""
 
     def compiled_with(model: Any) -> list[th.Tensor]:
         return [value for plan in model._adam_plans for state in plan.state() for value in state]
 
-    eager, compiled = build(False), build(True)
-    tensors = compiled_with(compiled)
-    for model in (eager, compiled):
-        model.set_parameters(copy.deepcopy(other.get_parameters()))
-        model.replay_buffer = other.replay_buffer
-        set_random_seed(1)
-        model.train(gradient_steps=steps, batch_size=batch_size)
-    assert_close_state(snapshot(eager, optimizers=True), snapshot(compiled, optimizers=True))
-    before = snapshot(other, optimizers=True)
+    before, tensors = snapshot(other, optimizers=True), compiled_with(compiled)
     compiled.set_parameters(other.get_parameters())
     compiled.train(gradient_steps=2, batch_size=batch_size)
     assert all(now is then for now, then in zip(compiled_with(compiled), tensors, strict=True))

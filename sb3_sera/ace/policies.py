@@ -11,6 +11,7 @@ from torch import nn
 
 from sb3_sera.ace.tree import best_actions, head_values, state_value, tree_value
 from sb3_sera.common.hyperparameters import check_int, check_range
+from sb3_sera.common.training_flags import set_training_flags
 
 #: Clip of the normalized observations (the authors' normalizer)
 OBS_CLIP = 10.0
@@ -254,7 +255,7 @@ class ACEPolicy(BasePolicy):
         return self.choose(observation.float())[0]
 
     def set_training_mode(self, mode: bool) -> None:
-        self.network.train(mode)
+        set_training_flags(self.network, mode)
         self.training = mode
 
 

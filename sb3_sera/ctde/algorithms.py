@@ -6,6 +6,7 @@ Each is its SB3 algorithm unchanged, with the ``"CTDEPolicy"`` alias: ``MASAC`` 
 ``MASAC`` can also compile its gradient step whole (``compile_update``), as SERASAC does.
 """
 
+import functools
 import inspect
 from typing import Any, ClassVar, cast
 
@@ -53,6 +54,12 @@ def _sb3_algorithm(algorithm_class: type[BaseAlgorithm]) -> type[BaseAlgorithm]:
     )
 
 
+@functools.cache
+def _sb3_train_signature(algorithm_class: type[BaseAlgorithm]) -> inspect.Signature:
+    """The signature of the SB3 algorithm's ``train`` (made once: ``inspect.signature`` takes tens of microseconds)."""
+    return inspect.signature(cast(type[OffPolicyAlgorithm], _sb3_algorithm(algorithm_class)).train)
+
+
 class _CTDEAlgorithm(NamedRuns, ChecksEnvSteps, Capabilities, BaseAlgorithm):
     """
     What each multi-agent algorithm adds to its SB3 algorithm (comes first in the bases): a CTDE env refuses any
@@ -92,8 +99,7 @@ class _CTDEAlgorithm(NamedRuns, ChecksEnvSteps, Capabilities, BaseAlgorithm):
         """SB3's ``train``, watched for non-finite values (see the class's docstring), or through the compiled step."""
         if isinstance(self, CompiledUpdate) and self._compiled_step is not None:
             # The SB3 algorithm's own defaults (batch_size: SAC's 64, TD3's 100)
-            sb3_train = cast(type[OffPolicyAlgorithm], _sb3_algorithm(type(self))).train
-            call = inspect.signature(sb3_train).bind(self, *args, **kwargs)
+            call = _sb3_train_signature(type(self)).bind(self, *args, **kwargs)
             call.apply_defaults()
             start_train(self, list(self._loss_optimizers().values()))
             self._train_steps(call.arguments["gradient_steps"], call.arguments["batch_size"])

@@ -21,6 +21,7 @@ from stable_baselines3.td3.policies import TD3Policy
 from torch import nn
 
 from sb3_sera.common.arguments import check_gymnasium_env
+from sb3_sera.common.training_flags import ActorCriticTrainingMode
 from sb3_sera.ctde.actors import CTDEActor, StackedCTDEActor, check_shareable
 from sb3_sera.ctde.env import STATE_KEY, CTDEEnv
 
@@ -145,7 +146,7 @@ def check_policy_arguments(
     return dict(agent_action_dims)
 
 
-class CTDEPolicyMixin:
+class CTDEPolicyMixin(ActorCriticTrainingMode):
     """
     What the CTDE variants of SB3's off-policy policies add to them: per-agent actors (of ``agent_actor_class``)
     and the state-only critic input. Comes first in the bases, before the SB3 policy it extends: MASAC's and

@@ -21,6 +21,7 @@ from stable_baselines3.sac.policies import SACPolicy
 from torch import nn
 
 from sb3_sera.common.hyperparameters import check_int
+from sb3_sera.common.training_flags import ActorCriticTrainingMode
 from sb3_sera.ctde.policies import CTDEPolicyMixin
 
 #: Hidden layers of the paper's heterogeneous critics (Table 4); critic ``i`` uses ``CRITIC_ARCHS[i % 5]``.
@@ -85,26 +86,6 @@ def check_critic_archs(critic_archs: Any, n_critics: int) -> list[list[int]]:
         if not all(isinstance(size, int) and size > 0 for size in arch):
             raise ValueError(f"critic_archs[{idx}]={arch!r} is invalid: hidden layer sizes must be positive integers")
     return critic_archs
-
-
-def set_training_flags(module: nn.Module, mode: bool) -> None:
-    """
-    ``module.train(mode)`` in one loop over the module tree: the ``training`` flag of each module whose class keeps
-    ``nn.Module.train`` is set directly, without ``nn.Module.__setattr__``; a module whose class overrides ``train``
-    gets its own ``train(mode)`` call, which sets its submodules.
-
-    :param mode: if true, set to training mode, else set to evaluation mode
-    """
-    if not isinstance(mode, bool):
-        raise ValueError(f"training mode is expected to be boolean, got {mode!r}")
-    stack = [module]
-    while stack:
-        current = stack.pop()
-        if type(current).train is not nn.Module.train:
-            current.train(mode)
-            continue
-        current.__dict__["training"] = mode
-        stack.extend(child for child in current._modules.values() if child is not None)
 
 
 class HeterogeneousCritics(BaseModel):
@@ -217,7 +198,7 @@ class HeterogeneousCritics(BaseModel):
         return groups
 
 
-class SERAPolicy(SACPolicy):
+class SERAPolicy(ActorCriticTrainingMode, SACPolicy):
     """
     SAC's policy with a heterogeneous ensemble of critics trained by one optimizer, one parameter group per critic.
 
@@ -323,18 +304,6 @@ class SERAPolicy(SACPolicy):
         data = super()._get_constructor_parameters()
         data.update(critic_archs=self.critic_archs)
         return data
-
-    def set_training_mode(self, mode: bool) -> None:
-        """
-        Put the actor and the critics (not the target critics) in training or evaluation mode, as SB3's SAC policy
-        does, with :func:`set_training_flags`: SB3 calls this before every action and every ``train()``, and five
-        critics make ``Module.train``'s walk a tenth of a millisecond.
-
-        :param mode: if true, set to training mode, else set to evaluation mode
-        """
-        set_training_flags(self.actor, mode)
-        set_training_flags(self.critic, mode)
-        self.training = mode
 
 
 MlpPolicy = SERAPolicy

@@ -20,7 +20,6 @@ from sb3_sera.common.compiled import (
     CompiledUpdate,
     CompileMode,
     StepOutput,
-    learning_rates_tensor,
     masked_polyak,
     masked_sac_update,
     sac_logged,
@@ -376,17 +375,14 @@ class SERASAC(NamedRuns, ChecksEnvSteps, Capabilities, CompiledUpdate, SAC):
         for index, rate in enumerate(critic_rates):
             self.logger.record(f"train/critic_lr_{index}", rate)
 
-    def _step_learning_rates(self) -> th.Tensor:
+    def _step_learning_rates(self) -> list[float]:
         """The compiled step's ``learning_rates``: the actor's, the critics' cap, the entropy coefficient's (0 when fixed)."""
         entropy_rate = self.ent_coef_optimizer.param_groups[0]["lr"] if self.ent_coef_optimizer is not None else 0.0
-        return learning_rates_tensor(
-            [
-                self.actor.optimizer.param_groups[0]["lr"],
-                self.critic_lr_schedule(self._current_progress_remaining),
-                entropy_rate,
-            ],
-            self.device,
-        )
+        return [
+            self.actor.optimizer.param_groups[0]["lr"],
+            self.critic_lr_schedule(self._current_progress_remaining),
+            entropy_rate,
+        ]
 
     def _optimizer_plans(self) -> list[AdamPlan]:
         return sac_plans(

@@ -16,6 +16,7 @@ from torch import nn
 
 from sb3_sera.common.hyperparameters import check_int, check_range
 from sb3_sera.common.layers import BatchedLinear, batched_mlp
+from sb3_sera.common.training_flags import ActorCriticTrainingMode
 from sb3_sera.sunrise.ensemble import squashed_gaussian_sample, ucb_choice
 
 DEFAULT_N_MEMBERS = 5
@@ -151,7 +152,7 @@ class MemberCritics(BaseModel):
         return tuple(self.q_values(obs, actions).flatten(0, 1).unsqueeze(-1).unbind(0))
 
 
-class SUNRISEPolicy(BasePolicy):
+class SUNRISEPolicy(ActorCriticTrainingMode, BasePolicy):
     """
     The SUNRISE ensemble: ``n_members`` SAC agents, each with its own actor, ``n_critics`` critics and target
     critics, same-shape networks held as stacked weights. One optimizer for all actors and one for all critics:
@@ -281,16 +282,6 @@ class SUNRISEPolicy(BasePolicy):
         else:
             members = th.randint(self.n_members, (n_samples,), device=proposals.device)
         return proposals[members, th.arange(n_samples, device=proposals.device)]
-
-    def set_training_mode(self, mode: bool) -> None:
-        """
-        Put the policy in either training or evaluation mode (batch normalisation, dropout).
-
-        :param mode: if true, set to training mode, else set to evaluation mode
-        """
-        self.actor.set_training_mode(mode)
-        self.critic.set_training_mode(mode)
-        self.training = mode
 
 
 MlpPolicy = SUNRISEPolicy

@@ -21,11 +21,11 @@ from tests.helpers import (
     CTDE_TASK,
     assert_compiled_equals_eager,
     assert_compiled_stays_with_eager,
+    assert_compiled_step_follows_every_change,
     assert_gpu_trained_model_loads_on_the_cpu,
     assert_non_finite_stops_the_step,
     assert_same_state,
     assert_schedule_does_not_recompile,
-    assert_set_parameters_reaches_the_compiled_step,
     compiled_settings,
     snapshot,
 )
@@ -98,12 +98,25 @@ def test_a_non_finite_value_stops_the_compiled_step_and_changes_nothing():
     assert_non_finite_stops_the_step(build(True), SETTINGS["batch_size"])
 
 
-@pytest.mark.parametrize("algorithm", [MASAC, MATD3])
-def test_set_parameters_reaches_the_compiled_step(algorithm):
-    # SAC's plans and TD3's: what another model's set_parameters loads is what the step reads, at the same addresses
-    other = algorithm("CTDEPolicy", ENV, seed=5, **compiled_settings("ctde"))
+@pytest.mark.parametrize(
+    ("algorithm", "kwargs"),
+    [
+        (MASAC, {}),
+        (MASAC, dict(ent_coef=0.1)),
+        (MATD3, {}),
+        pytest.param(MADDPG, {}, marks=pytest.mark.slow),
+        pytest.param(IET, dict(env=CTDE_TASK), marks=pytest.mark.slow),
+    ],
+)
+def test_the_compiled_step_follows_every_change_a_user_makes(algorithm, kwargs, tmp_path):
+    # SAC's plans and TD3's (a learned and a fixed entropy coefficient: the graphs of the equality tests)
+    settings = {key: value for key, value in kwargs.items() if key != "env"}
+    env = kwargs.get("env", ENV)
+    other = algorithm("CTDEPolicy", env, seed=5, **{**compiled_settings("ctde"), **settings})
     other.learn(SETTINGS["learning_starts"] + 40)
-    assert_set_parameters_reaches_the_compiled_step(partial(build, algorithm=algorithm), other, SETTINGS["batch_size"])
+    assert_compiled_step_follows_every_change(
+        partial(build, algorithm=algorithm, **kwargs), other, SETTINGS["batch_size"], tmp_path, partial(gym.make, env)
+    )
 
 
 def test_bad_modes_are_refused():

@@ -107,6 +107,11 @@ TINY_PEERS = ["--env", "Pendulum-v1", "--learning-starts", "20", "--blocks", "1"
             [*TINY_PEERS, "--models", "SB3 SAC", "SERASAC eager"],
             "| SERASAC eager |",
         ),
+        (
+            "host_floor.py",
+            ["--models", "SB3 SAC eager", "SERASAC eager", "--blocks", "1", "--block-steps", "20"],
+            "| SERASAC eager |",
+        ),
     ],
 )
 def test_benchmark_script_runs(script, args, expected, monkeypatch, capsys):

@@ -4,6 +4,7 @@ rounding, with the non-finite guard kept (read once per log interval in ``learn(
 """
 
 import math
+from functools import partial
 from typing import Any
 
 import pytest
@@ -19,10 +20,10 @@ from tests.helpers import (
     CTDE_TASK,
     assert_close_state,
     assert_compiled_stays_with_eager,
+    assert_compiled_step_follows_every_change,
     assert_gpu_trained_model_loads_on_the_cpu,
     assert_same_state,
     assert_schedule_does_not_recompile,
-    assert_set_parameters_reaches_the_compiled_step,
     benchmark_module,
     compiled_settings,
     snapshot,
@@ -156,10 +157,11 @@ def test_a_compiled_model_saves_loads_and_goes_on(eager_and_compiled, tmp_path):
         assert loaded.actor.optimizer.state_dict()["state"][0]["step"] == steps + 2
 
 
-def test_set_parameters_reaches_the_compiled_step():
+def test_the_compiled_step_follows_every_change_a_user_makes(tmp_path):
     other = SERASAC("MlpPolicy", "Pendulum-v1", seed=5, **SETTINGS)
     other.learn(SETTINGS["learning_starts"] + 40)
-    assert_set_parameters_reaches_the_compiled_step(build, other, SETTINGS["batch_size"])
+    make_env = partial(make_vec_env, "Pendulum-v1")
+    assert_compiled_step_follows_every_change(build, other, SETTINGS["batch_size"], tmp_path, make_env)
 
 
 def test_the_compiled_step_follows_the_critic_lr_max_schedule():

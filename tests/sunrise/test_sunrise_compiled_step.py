@@ -1,5 +1,6 @@
 """SUNRISE's ``compile_update``: every member's gradient step as one graph, equal to the eager step, guarded, saved."""
 
+from functools import partial
 from typing import Any
 
 from stable_baselines3.common.env_util import make_vec_env
@@ -8,10 +9,10 @@ from sb3_sera import SUNRISE
 from tests.helpers import (
     COMPILED_GROUP,
     assert_compiled_equals_eager,
+    assert_compiled_step_follows_every_change,
     assert_gpu_trained_model_loads_on_the_cpu,
     assert_non_finite_stops_the_step,
     assert_schedule_does_not_recompile,
-    assert_set_parameters_reaches_the_compiled_step,
     compiled_settings,
 )
 
@@ -50,7 +51,8 @@ def test_a_learning_rate_schedule_does_not_recompile_the_step():
     assert_schedule_does_not_recompile(build(True, learning_rate=rate), SETTINGS["batch_size"], rate)
 
 
-def test_set_parameters_reaches_the_compiled_step():
+def test_the_compiled_step_follows_every_change_a_user_makes(tmp_path):
     other = SUNRISE("MlpPolicy", "Pendulum-v1", seed=5, **SETTINGS)
     other.learn(SETTINGS["learning_starts"] + 40)
-    assert_set_parameters_reaches_the_compiled_step(build, other, SETTINGS["batch_size"])
+    make_env = partial(make_vec_env, "Pendulum-v1")
+    assert_compiled_step_follows_every_change(build, other, SETTINGS["batch_size"], tmp_path, make_env)

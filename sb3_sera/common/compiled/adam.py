@@ -66,11 +66,16 @@ class AdamPlan:
                     f"{sorted(str(kind) for kind in kinds)}: move the modules to one device and dtype, or use "
                     "compile_update=False"
                 )
-        #: The state tensors the step reads, once :meth:`state` has made them
+        #: The state tensors the step reads, once :meth:`state` has made them, and the optimizer's state dict they are in
         self._held: list[AdamState] | None = None
-        self.settings: list[tuple[float, float, float, float, bool]] = [
+        self._held_in: dict[Any, Any] | None = None
+        self.settings = self._settings()
+
+    def _settings(self) -> list[tuple[float, float, float, float, bool]]:
+        """Each group's betas, eps, weight decay and whether it is decoupled (AdamW's), as the optimizer holds them."""
+        return [
             (*group["betas"], group["eps"], group["weight_decay"], bool(group.get("decoupled_weight_decay", False)))
-            for group in optimizer.param_groups
+            for group in self.optimizer.param_groups
         ]
 
     def state(self) -> list[AdamState]:
@@ -82,8 +87,14 @@ class AdamPlan:
         as SB3's ``set_parameters`` and ``load`` call it) is copied into these tensors, which go back into the
         optimizer: a step replayed at their addresses reads the values loaded, and a model loaded from another's
         parameters shares no tensor with it (torch's ``load_state_dict`` keeps the given tensors where their dtype
-        and device fit).
+        and device fit). The groups' settings are read again then (a loaded optimizer brings its own betas, eps and
+        weight decay).
+
+        While nothing was loaded the check is one comparison: torch's ``load_state_dict`` gives the optimizer a new
+        state dict, and until it does, the tensors in it are those the step reads.
         """
+        if self._held is not None and self.optimizer.state is self._held_in:
+            return self._held
         if self._held is None:
             self._held = [self._param_state(param) for param in self.params]
             # Everything the step writes in place has a fixed address for CUDA graphs (cuda_graph_blockers): the
@@ -103,6 +114,9 @@ class AdamPlan:
                     else:
                         kept.copy_(value)
                     state[key] = kept
+        self._held_in = self.optimizer.state
+        if self._settings() != self.settings:
+            self.settings = self._settings()
         if any(param.device.type != "cpu" for param in self.params):
             # torch's own step (after loading without compile_update) accepts a device step when capturable; a loaded
             # group brings its own flags
@@ -239,9 +253,9 @@ def masked_polyak(targets: Sequence[th.Tensor], sources: Sequence[th.Tensor], ta
             target.copy_(th.where(apply, target * (1.0 - tau) + tau * source, target))
 
 
-def plans_learning_rates(plans: Sequence[AdamPlan], device: th.device) -> th.Tensor:
+def plans_learning_rates(plans: Sequence[AdamPlan]) -> list[float]:
     """A compiled step's ``learning_rates`` for ``plans``: each one's optimizer's current rate, in their order."""
-    return learning_rates_tensor([plan.optimizer.param_groups[0]["lr"] for plan in plans], device)
+    return [plan.optimizer.param_groups[0]["lr"] for plan in plans]
 
 
 def all_finite(tensors: Sequence[th.Tensor]) -> th.Tensor:

@@ -6,6 +6,7 @@ anything back, reads the steps' values once per log interval in ``learn()`` (or 
 the algorithm its own (``CompiledUpdate._after_compiled_steps``).
 """
 
+import contextlib
 import io
 import pathlib
 import time
@@ -14,11 +15,11 @@ from typing import Any, ClassVar, NamedTuple, TypeVar
 
 import torch as th
 from stable_baselines3.common.buffers import ReplayBuffer
-from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from torch.utils import _pytree
 
-from sb3_sera.common.compiled.adam import AdamPlan, AdamState, plans_learning_rates
-from sb3_sera.common.compiled.modes import COMPILE_MODES, CompileMode, available_mode, compile_step
+from sb3_sera.common.acting import LearnActions
+from sb3_sera.common.compiled.adam import AdamPlan, AdamState, learning_rates_tensor, plans_learning_rates
+from sb3_sera.common.compiled.modes import COMPILE_MODES, CompileMode, available_mode, compile_step, tracing
 from sb3_sera.common.compiled.sac import SAC_LOGGED, sac_quantities
 from sb3_sera.common.compiled.skips import watching_cuda_graphs
 from sb3_sera.common.device_buffer import DeviceReplayBuffer, device_buffer_class
@@ -45,7 +46,7 @@ class StepOutput(NamedTuple):
     extra: th.Tensor
 
 
-class CompiledUpdate(OffPolicyAlgorithm):
+class CompiledUpdate(LearnActions):
     """
     ``compile_update`` for an off-policy algorithm (comes before its SB3 algorithm in the bases): the whole gradient
     step compiled into one graph with ``torch.compile``, Adam as a masked update (:func:`.masked_adam`: a non-finite
@@ -63,7 +64,8 @@ class CompiledUpdate(OffPolicyAlgorithm):
     first such step. ``read_every_train = True`` reads after every ``train()`` call instead, as does a ``train()``
     called outside ``learn()``.
 
-    The action: ``learn()`` acts eagerly, as SB3 does (a compiled actor measured slower on a GPU: ``docs/speed.md``).
+    The action: ``learn()`` acts eagerly, as SB3 does (a compiled actor measured slower on a GPU: ``docs/speed.md``),
+    without what ``predict`` does for inputs ``learn()`` cannot give it (:class:`~sb3_sera.common.acting.LearnActions`).
 
     An algorithm supplies ``_gradient_step_graph`` and ``_optimizer_plans``, calls ``_setup_compiled_update`` at the
     end of its ``_setup_model`` and ``_train_steps`` from its ``train`` (the compiled step where ``_compiled_step`` is
@@ -87,6 +89,10 @@ class CompiledUpdate(OffPolicyAlgorithm):
     _pending_calls: list[tuple[int, int, int]]
     #: Whether every pending step had only finite values (the next step's ``healthy``); None: no step pending
     _pending_healthy: th.Tensor | None
+    #: The step's flag arguments on the model's device, by argument and value, and its last ``learning_rates`` with
+    #: their values
+    _flags: dict[tuple[str, bool], th.Tensor]
+    _rates: tuple[list[float], th.Tensor] | None
 
     def _setup_model(self) -> None:
         if self.replay_buffer_class is None:
@@ -118,6 +124,7 @@ class CompiledUpdate(OffPolicyAlgorithm):
         """Compile the gradient step and make its optimizers' plans, where ``compile_update`` asks for it."""
         self._compiled_step, self._adam_plans = None, []
         self._pending_outputs, self._pending_calls, self._pending_healthy = [], [], None
+        self._flags, self._rates = {}, None
         if not self.compile_update:
             return
         if self.use_sde:
@@ -127,7 +134,9 @@ class CompiledUpdate(OffPolicyAlgorithm):
             )
         self.compile_update = available_mode(self.compile_update, self.device)
         self._adam_plans = self._optimizer_plans()
-        self._compiled_step = self._timing_the_compilation(compile_step(self._gradient_step_graph, self.compile_update))
+        self._compiled_step = self._timing_the_compilation(
+            compile_step(self._gradient_step_graph, self.compile_update, self.device)
+        )
 
     def _timing_the_compilation(self, step: Callable[..., StepOutput]) -> Callable[..., StepOutput]:
         """
@@ -176,16 +185,32 @@ class CompiledUpdate(OffPolicyAlgorithm):
         by ``healthy`` and by whether this step's values were finite, nothing read back.
 
         :param replay_data: the step's batch (``_sample_batch``)
-        :param learning_rates: ``_step_learning_rates``
+        :param learning_rates: ``_step_learning_rates`` as a tensor, in :func:`.scalar_dtype`
         :param due: whether the step's periodic update is due (``_step_due``), a boolean scalar tensor
         :param healthy: whether every earlier step of the ``train()`` call had only finite values
         :param states: each plan's Adam state (:meth:`.AdamPlan.state`), in ``_adam_plans`` order
         """
         raise NotImplementedError
 
-    def _step_learning_rates(self) -> th.Tensor:
+    def _step_learning_rates(self) -> list[float]:
         """The step's ``learning_rates``: each plan's optimizer's current rate, in the plans' order."""
-        return plans_learning_rates(self._adam_plans, self.device)
+        return plans_learning_rates(self._adam_plans)
+
+    def _learning_rates_tensor(self) -> th.Tensor:
+        """``_step_learning_rates`` as the step's tensor: the one made last while the rates are the same."""
+        rates = self._step_learning_rates()
+        if self._rates is None or self._rates[0] != rates:
+            self._rates = (rates, learning_rates_tensor(rates, self.device))
+        return self._rates[1]
+
+    def _flag(self, argument: str, value: bool) -> th.Tensor:
+        """
+        ``value`` as a boolean scalar tensor on the model's device for the step's ``argument``, made once: one tensor
+        per argument and value, as two arguments given the same tensor would be a new graph to Dynamo.
+        """
+        if (argument, value) not in self._flags:
+            self._flags[argument, value] = th.tensor(value, device=self.device)
+        return self._flags[argument, value]
 
     def _step_due(self, gradient_step: int) -> bool:
         """
@@ -270,11 +295,14 @@ class CompiledUpdate(OffPolicyAlgorithm):
     def learn(self: SelfCompiledUpdate, *args: Any, **kwargs: Any) -> SelfCompiledUpdate:
         """
         SB3's ``learn``, the compiled steps' values read once per log interval (see the class's docstring) unless
-        ``read_every_train``.
+        ``read_every_train``, with Dynamo's settings for tracing the step (:func:`.tracing`) in force for the whole call
+        (callbacks included) rather than set at every step.
         """
         self._deferring_reads = self._compiled_step is not None and not self.read_every_train
         try:
-            super().learn(*args, **kwargs)
+            # Dynamo's settings for the step set once for all the steps (compile_step sets them for a call outside)
+            with tracing() if self._compiled_step is not None else contextlib.nullcontext():
+                super().learn(*args, **kwargs)
         finally:
             self._deferring_reads = False
         self.read_pending_steps()
@@ -299,17 +327,14 @@ class CompiledUpdate(OffPolicyAlgorithm):
         """
         assert self._compiled_step is not None
         states = [plan.state() for plan in self._adam_plans]
-        learning_rates = self._step_learning_rates()
-        flags: dict[bool, th.Tensor] = {}
+        learning_rates = self._learning_rates_tensor()
         healthy = self._pending_healthy
         if healthy is None:
-            healthy = th.ones((), dtype=th.bool, device=self.device)
+            healthy = self._flag("healthy", True)
         outputs = []
         for gradient_step, batch in enumerate(self._sample_batches(gradient_steps, batch_size)):
-            due = self._step_due(gradient_step)
-            if due not in flags:
-                flags[due] = th.tensor(due, device=self.device)
-            arguments = dict(learning_rates=learning_rates, due=flags[due], healthy=healthy, states=states)
+            due = self._flag("due", self._step_due(gradient_step))
+            arguments = dict(learning_rates=learning_rates, due=due, healthy=healthy, states=states)
             if self.compile_update == "reduce-overhead":
                 th.compiler.cudagraph_mark_step_begin()
                 output = _pytree.tree_map(th.clone, watching_cuda_graphs(self._compiled_step, batch, arguments))
@@ -323,9 +348,9 @@ class CompiledUpdate(OffPolicyAlgorithm):
     def _probe_arguments(self) -> dict[str, Any]:
         """Arguments of one step that changes nothing (``healthy`` false), its update due: to trace or check the step."""
         return dict(
-            learning_rates=self._step_learning_rates(),
-            due=th.tensor(True, device=self.device),
-            healthy=th.tensor(False, device=self.device),
+            learning_rates=self._learning_rates_tensor(),
+            due=self._flag("due", True),
+            healthy=self._flag("healthy", False),
             states=[plan.state() for plan in self._adam_plans],
         )
 
@@ -337,6 +362,8 @@ class CompiledUpdate(OffPolicyAlgorithm):
             "_pending_outputs",
             "_pending_calls",
             "_pending_healthy",
+            "_flags",
+            "_rates",
         ]
 
 

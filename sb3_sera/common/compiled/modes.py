@@ -1,8 +1,8 @@
 """``compile_update``'s modes, and a gradient step through ``torch.compile`` in one of them."""
 
+import contextlib
 import warnings
-from collections.abc import Callable
-from contextlib import AbstractContextManager
+from collections.abc import Callable, Iterator
 from typing import Any, Literal, TypeVar
 
 import torch as th
@@ -16,6 +16,9 @@ CompileMode = Literal[False, True, "reduce-overhead"]
 COMPILE_MODES: tuple[CompileMode, ...] = (False, True, "reduce-overhead")
 
 _Output = TypeVar("_Output")
+
+#: How many :func:`tracing` contexts are open (Dynamo's settings are in force while one is)
+_tracing_depth = 0
 
 
 def available_mode(mode: CompileMode, device: th.device) -> CompileMode:
@@ -35,30 +38,35 @@ def available_mode(mode: CompileMode, device: th.device) -> CompileMode:
     return mode
 
 
-def compile_step(step: Callable[..., _Output], mode: CompileMode) -> Callable[..., _Output]:
+def compile_step(step: Callable[..., _Output], mode: CompileMode, device: th.device | None = None) -> Callable[..., _Output]:
     """
     ``step`` through ``torch.compile`` as one graph (``fullgraph=True``: a graph break is an error), static shapes,
     random ops drawing from torch's generator as in eager mode (``fallback_random``), and with ``"reduce-overhead"``
-    replayed as a CUDA graph, in Dynamo's settings of :func:`tracing` (set only while the compiled step runs), with
-    Inductor's options of :func:`step_options`.
+    replayed as a CUDA graph, in Dynamo's settings of :func:`tracing` (set for the call unless they are in force, as
+    :meth:`.CompiledUpdate.learn` sets them for all its steps), with Inductor's options of :func:`step_options` for
+    ``device``, the one the step runs on (None: any).
     """
-    compiled = th.compile(step, fullgraph=True, dynamic=False, options=step_options(mode))
+    compiled = th.compile(step, fullgraph=True, dynamic=False, options=step_options(mode, device))
 
     def run(*args: Any, **kwargs: Any) -> _Output:
+        if _tracing_depth:
+            return compiled(*args, **kwargs)
         with tracing():
             return compiled(*args, **kwargs)
 
     return run
 
 
-def step_options(mode: CompileMode) -> dict[str, Any]:
+def step_options(mode: CompileMode, device: th.device | None = None) -> dict[str, Any]:
     """
-    Inductor's options for a gradient step compiled with ``mode`` (:func:`compile_step`): the generated code does not
-    check the sizes, strides and alignment of what each library kernel returns (``size_asserts``,
-    ``alignment_asserts``: two Python calls per matrix product), and the random draws run in program order, as eager
-    draws them (:class:`~sb3_sera.common.compiled.graph_passes.KeepRandomOrder`). Before torch 2.13 Inductor's locality pass
-    moves each draw next to its first use (``reorder_for_locality``), which can take a step's draws out of eager's
-    order: the pass is off on such a torch (measured: ``docs/speed.md``, "On a GPU").
+    Inductor's options for a gradient step compiled with ``mode`` (:func:`compile_step`) to run on ``device``: the
+    generated code does not check the sizes, strides and alignment of what each library kernel returns
+    (``size_asserts``, ``alignment_asserts``: two Python calls per matrix product), on a CPU it calls its kernels from
+    C++ (``cpp_wrapper``, cheaper to call and to compile: ``docs/speed.md``, "The host floor"), and the random draws
+    run in program order, as eager draws them (:class:`~sb3_sera.common.compiled.graph_passes.KeepRandomOrder`).
+    Before torch 2.13 Inductor's locality pass moves each draw next to its first use (``reorder_for_locality``),
+    which can take a step's draws out of eager's order: the pass is off on such a torch (measured: ``docs/speed.md``,
+    "On a GPU").
     """
     # Inductor is imported where a step is compiled, not where the package is: it takes seconds
     from sb3_sera.common.compiled.graph_passes import KeepRandomOrder, torch_keeps_random_order
@@ -67,22 +75,34 @@ def step_options(mode: CompileMode) -> dict[str, Any]:
         "fallback_random": True,
         "reorder_for_locality": torch_keeps_random_order(),
         "triton.cudagraphs": mode == "reduce-overhead",
+        "cpp_wrapper": device is not None and device.type == "cpu",
         "size_asserts": False,
         "alignment_asserts": False,
         "post_grad_custom_post_pass": KeepRandomOrder(),
     }
 
 
-def tracing() -> AbstractContextManager[None]:
+@contextlib.contextmanager
+def tracing() -> Iterator[None]:
     """
-    Dynamo's settings for tracing a gradient step: ``torch.autograd.grad`` traced into the graph
-    (``trace_autograd_ops``), operations whose output's size depends on the data, such as ``nonzero``, kept in it
-    (``capture_dynamic_output_shape_ops``: the sizes become symbols of the one graph, not recompilations), and room
-    for ``RECOMPILE_LIMIT`` models of a class in one process (``recompile_limit``).
+    Dynamo's settings for tracing a gradient step, while the context lasts: ``torch.autograd.grad`` traced into the
+    graph (``trace_autograd_ops``), operations whose output's size depends on the data, such as ``nonzero``, kept in
+    it (``capture_dynamic_output_shape_ops``: the sizes become symbols of the one graph, not recompilations), and room
+    for ``RECOMPILE_LIMIT`` models of a class in one process (``recompile_limit``). Inside another ``tracing()`` it
+    changes nothing (setting Dynamo's configuration takes a fifth of a millisecond: once a ``learn()``, not a step).
     """
-    return th._dynamo.config.patch(
+    global _tracing_depth
+    if _tracing_depth:
+        yield
+        return
+    with th._dynamo.config.patch(
         trace_autograd_ops=True,
         capture_dynamic_output_shape_ops=True,
         recompile_limit=RECOMPILE_LIMIT,
         accumulated_recompile_limit=max(RECOMPILE_LIMIT, th._dynamo.config.accumulated_recompile_limit),
-    )
+    ):
+        _tracing_depth += 1
+        try:
+            yield
+        finally:
+            _tracing_depth -= 1
