@@ -7,7 +7,7 @@ import torch as th
 from gymnasium import spaces
 
 from sb3_sera import IET, MASAC, MATD3, SERASAC, SUNRISE
-from sb3_sera.common.acting import acts_directly, learn_action
+from sb3_sera.common.acting import acts_directly, drawing_actor, learn_action
 from tests.helpers import CTDE_TASK, ENV_ID, SMALL, SMALL_CTDE
 
 
@@ -35,6 +35,19 @@ def test_the_learn_action_is_predicts_from_the_same_draws(algorithm, policy, env
     model.learn(settings["learning_starts"] + 3)
     single = {key: value[0] for key, value in observation.items()} if isinstance(observation, dict) else observation[0]
     assert model.predict(single, deterministic=True)[0].shape == model.action_space.shape
+
+
+def test_sacs_draw_without_its_distribution_is_the_same_and_a_nan_gets_sb3s_error():
+    model = SERASAC("MlpPolicy", ENV_ID, seed=0, **SMALL)
+    assert drawing_actor(model.policy) is model.actor  # the draw above was this one: SB3's SAC actor
+    assert drawing_actor(MATD3("CTDEPolicy", gym.make(CTDE_TASK), **SMALL_CTDE).policy) is None
+    with th.no_grad():
+        model.actor.mu.weight.fill_(np.nan)
+    observation = model.env.reset()
+    with pytest.raises(ValueError, match="Expected parameter loc"):
+        model.policy.predict(observation, deterministic=False)
+    with pytest.raises(ValueError, match="Expected parameter loc"):
+        learn_action(model.policy, observation)
 
 
 def test_policies_with_their_own_predict_or_images_act_through_predict():
