@@ -43,7 +43,7 @@ import torch as th
 from host_reads import HostReads
 from stable_baselines3 import SAC
 from stable_baselines3.common.base_class import BaseAlgorithm
-from timing import median_iqr
+from timing import interleaved, median_iqr
 
 from sb3_sera import MASAC, SERASAC
 from sb3_sera.common.compiled import CompiledUpdate
@@ -168,14 +168,9 @@ def floor_table(
     of each part over the blocks, and the host reads an env step (an untimed block after the timed ones).
     """
     names = list(models)
-    totals: dict[str, list[float]] = {name: [] for name in names}
-    parts: dict[str, list[dict[str, float]]] = {name: [] for name in names}
-    for block in range(warmup_blocks + blocks):
-        for name in names if block % 2 == 0 else reversed(names):
-            total, split = timed_block(*models[name], block_steps)
-            if block >= warmup_blocks:
-                totals[name].append(total)
-                parts[name].append(split)
+    measured = interleaved(models, lambda pair: timed_block(*pair, block_steps), blocks, warmup_blocks)
+    totals = {name: [total for total, _ in measured[name]] for name in names}
+    parts = {name: [split for _, split in measured[name]] for name in names}
     reference = float(np.median(totals[names[0]]))
     rows = [
         f"| model | ms an env step (IQR) | x {names[0]} | {' | '.join(PARTS)} | host reads an env step |",

@@ -2,11 +2,15 @@
 
 import argparse
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
+from typing import TypeVar
 
 import numpy as np
 import torch as th
 from stable_baselines3.common.base_class import BaseAlgorithm
+
+_Model = TypeVar("_Model")
+_Measure = TypeVar("_Measure")
 
 
 def time_block(model: BaseAlgorithm, mode: str, block_steps: int, batch_size: int | None) -> float:
@@ -26,6 +30,23 @@ def time_block(model: BaseAlgorithm, mode: str, block_steps: int, batch_size: in
     return block_steps / (time.perf_counter() - start)
 
 
+def interleaved(
+    models: Mapping[str, _Model], measure: Callable[[_Model], _Measure], blocks: int, warmup_blocks: int = 2
+) -> dict[str, list[_Measure]]:
+    """
+    ``measure(model)`` of each model over ``blocks`` rounds, the models taking turns (in alternating order) so that
+    machine noise hits them alike; the first ``warmup_blocks`` rounds are not kept.
+    """
+    names = list(models)
+    measured: dict[str, list[_Measure]] = {name: [] for name in names}
+    for block in range(warmup_blocks + blocks):
+        for name in names if block % 2 == 0 else reversed(names):
+            value = measure(models[name])
+            if block >= warmup_blocks:
+                measured[name].append(value)
+    return measured
+
+
 def interleaved_rates(
     models: Mapping[str, BaseAlgorithm],
     mode: str,
@@ -34,18 +55,8 @@ def interleaved_rates(
     batch_size: int | None,
     warmup_blocks: int = 2,
 ) -> dict[str, list[float]]:
-    """
-    Rates of each model over ``blocks`` timed blocks, the models taking turns (in alternating order) so that
-    machine noise hits them alike; the first ``warmup_blocks`` rounds are not kept.
-    """
-    names = list(models)
-    rates: dict[str, list[float]] = {name: [] for name in names}
-    for block in range(warmup_blocks + blocks):
-        for name in names if block % 2 == 0 else reversed(names):
-            rate = time_block(models[name], mode, block_steps, batch_size)
-            if block >= warmup_blocks:
-                rates[name].append(rate)
-    return rates
+    """Rates of each model over ``blocks`` timed blocks (:func:`time_block`), :func:`interleaved`."""
+    return interleaved(models, lambda model: time_block(model, mode, block_steps, batch_size), blocks, warmup_blocks)
 
 
 def median_iqr(values: list[float]) -> tuple[float, float, float]:

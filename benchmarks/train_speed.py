@@ -25,7 +25,6 @@ from functools import partial
 from typing import Any
 
 import torch as th
-import torch._inductor.config
 from stable_baselines3 import SAC
 from stable_baselines3.common.base_class import BaseAlgorithm
 from timing import add_interleave_arguments, interleaved_rates, median_iqr

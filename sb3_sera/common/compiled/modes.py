@@ -49,8 +49,6 @@ def compile_step(step: Callable[..., _Output], mode: CompileMode, device: th.dev
     compiled = th.compile(step, fullgraph=True, dynamic=False, options=step_options(mode, device))
 
     def run(*args: Any, **kwargs: Any) -> _Output:
-        if _tracing_depth:
-            return compiled(*args, **kwargs)
         with tracing():
             return compiled(*args, **kwargs)
 
