@@ -32,7 +32,8 @@ process, a table of
   device at once: each one's ``learn()`` rate and their total, against one process's;
 - ``floor``: the host floor (``host_floor.py``): SB3 SAC, SERASAC and MASAC at compute-free networks on Pendulum-v1
   and ``--ma-env``, the milliseconds an env step and its split (acting, env, buffer, ``train()``'s host code, the
-  step, the read), a table of its own after the others.
+  step, the read), a table of its own after the others, then each compiled model's step alone (``--split-steps``
+  calls) with Dynamo's guards and without them, beside a check of its tensors' layout in Python.
 
 Each rate is the median of ``--blocks`` blocks of ``--block-steps`` steps, with its ratio to SB3 SAC's rate (the
 single-agent rows) or to eager SERASAC's on the multi-agent task (the multi-agent rows). Every section takes about 13
@@ -313,6 +314,7 @@ def main() -> None:
         constructors = host_floor.floor_models("Pendulum-v1", args.ma_env, args.device)
         floor = {name: host_floor.build(constructor) for name, constructor in constructors.items()}
         emit(["", *host_floor.floor_table(floor, args.blocks, args.block_steps)])
+        emit(["", *host_floor.step_call_rows(host_floor.compiled_models(floor), args.split_steps)])
     seconds = time.perf_counter() - started
     device = f"{th.cuda.get_device_name()}, CUDA {th.version.cuda}" if cuda else "CPU"
     print(f"\n{device}, torch {th.__version__}; {seconds:.0f} s", flush=True)

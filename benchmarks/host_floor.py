@@ -21,12 +21,16 @@ call that does it:
 - ``read``: reading the compiled steps' values back (once per log interval in ``learn()``);
 - ``rest``: the rest of SB3's loop (callbacks, storing the transition beside ``add``, the episode bookkeeping).
 
-Then the host reads an env step (:mod:`host_reads`) over an untimed block, and with ``--profile N`` the ``N``
+Then the host reads an env step (:mod:`host_reads`) over an untimed block; with ``--profile N`` the ``N``
 functions with the most own time (``cProfile``, which inflates every Python call) over ``--profile-steps`` steps of
-each compiled model.
+each compiled model; and with ``--step-calls N`` each compiled model's built step alone, ``N`` calls on one batch,
+with Dynamo's guards evaluated (as ``learn()`` calls it) and skipped (``torch.compiler.set_stance`` with
+``skip_guard_eval_unsafe=True``), interleaved with a check in Python of the layout of the tensors it reads: what
+the guards cost, and the least a sound skip of them would cost instead. The library never skips them (a skipped
+guard misses a change the graph depends on).
 
     OMP_NUM_THREADS=1 python benchmarks/host_floor.py
-    OMP_NUM_THREADS=1 python benchmarks/host_floor.py --blocks 5 --block-steps 200 --profile 15
+    OMP_NUM_THREADS=1 python benchmarks/host_floor.py --blocks 5 --block-steps 200 --profile 15 --step-calls 2000
 """
 
 import argparse
@@ -34,7 +38,7 @@ import cProfile
 import pstats
 import time
 from collections import defaultdict
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import gymnasium as gym
@@ -47,6 +51,7 @@ from timing import interleaved, median_iqr
 
 from sb3_sera import MASAC, SERASAC
 from sb3_sera.common.compiled import CompiledUpdate
+from sb3_sera.common.compiled.modes import tracing
 from sb3_sera.common.mujoco_log import route_mujoco_warnings
 
 #: The parts of an env step, in the order the table prints them
@@ -204,6 +209,70 @@ def profile_rows(model: BaseAlgorithm, steps: int, top: int) -> list[str]:
     ]
 
 
+def compiled_models(models: dict[str, tuple[BaseAlgorithm, Split]]) -> dict[str, BaseAlgorithm]:
+    """The models of :func:`build` whose gradient step is compiled, by name."""
+    return {
+        name: model
+        for name, (model, _) in models.items()
+        if isinstance(model, CompiledUpdate) and model._compiled_step is not None
+    }
+
+
+def step_call_rows(models: Mapping[str, BaseAlgorithm], calls: int, rounds: int = 5) -> list[str]:
+    """
+    The compiled models' built step alone, Markdown rows: the median ms a call over ``rounds`` interleaved rounds of
+    ``calls`` calls on one batch, a step that changes nothing (``healthy`` false), with Dynamo's guards evaluated and
+    with them skipped (a measurement only: see the module's docstring); and beside them what a check in Python of
+    the identity and layout of the tensors the step reads (the policy's parameters and buffers, the Adam states)
+    costs, the least that skipping the guards soundly would have to do instead at every call.
+    """
+
+    def time_layout_check(model: BaseAlgorithm) -> float:
+        assert isinstance(model, CompiledUpdate)
+        states = [tensor for plan in model._probe_arguments()["states"] for state in plan for tensor in state]
+        tensors = [*model.policy.parameters(), *model.policy.buffers(), *states]
+
+        def layout() -> list[tuple[Any, ...]]:
+            return [(id(t), t.shape, t.dtype, t.device, t.requires_grad, t.stride()) for t in tensors]
+
+        checked = layout()
+        start = time.perf_counter()
+        for _ in range(calls):
+            assert layout() == checked
+        return 1e3 * (time.perf_counter() - start) / calls
+
+    def time_calls(model: BaseAlgorithm, skip_guards: bool) -> float:
+        assert isinstance(model, CompiledUpdate) and model._compiled_step is not None
+        step, batch, arguments = model._compiled_step, model._sample_batch(model.batch_size), model._probe_arguments()
+        graphs = model.compile_update == "reduce-overhead"
+        with tracing(), th.compiler.set_stance("default", skip_guard_eval_unsafe=skip_guards):
+            start = time.perf_counter()
+            for _ in range(calls):
+                if graphs:
+                    th.compiler.cudagraph_mark_step_begin()
+                step(batch, **arguments)
+            if model.device.type == "cuda":
+                th.cuda.synchronize()
+            return 1e3 * (time.perf_counter() - start) / calls
+
+    kinds = ("call", "guards skipped", "layout check")
+    timers: dict[str, Callable[[BaseAlgorithm], float]] = {
+        "call": lambda model: time_calls(model, False),
+        "guards skipped": lambda model: time_calls(model, True),
+        "layout check": time_layout_check,
+    }
+    variants = {f"{name}, {kind}": (model, timers[kind]) for name, model in models.items() for kind in kinds}
+    measured = interleaved(variants, lambda variant: variant[1](variant[0]), rounds, warmup_blocks=1)
+    rows = [
+        "| model | the step's call, ms (IQR) | guards skipped, ms (IQR) | its tensors' layout checked in Python, ms (IQR) |",
+        "|---|---|---|---|",
+    ]
+    for name in models:
+        cells = ["{:.3f} ({:.3f}-{:.3f})".format(*median_iqr(measured[f"{name}, {kind}"])) for kind in kinds]
+        rows.append(f"| {name} | {' | '.join(cells)} |")
+    return rows
+
+
 def main() -> None:
     route_mujoco_warnings()
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -216,6 +285,7 @@ def main() -> None:
     parser.add_argument("--models", nargs="+", help="the models to time (default: all; the first is the reference)")
     parser.add_argument("--profile", type=int, default=0, help="then the top N functions of each compiled model")
     parser.add_argument("--profile-steps", type=int, default=1000)
+    parser.add_argument("--step-calls", type=int, default=0, help="then N calls of each compiled model's step alone")
     args = parser.parse_args()
     import sb3_sera.ctde.tasks  # noqa: F401  (registers the multi-agent ids)
 
@@ -229,10 +299,14 @@ def main() -> None:
     device = th.cuda.get_device_name() if args.device.startswith("cuda") else "CPU"
     print(f"{args.env} and {args.ma_env}, {args.threads} torch thread(s), torch {th.__version__}, {device}")
     print("\n".join(floor_table(models, args.blocks, args.block_steps)))
-    for name, (model, _) in models.items():
-        if args.profile and isinstance(model, CompiledUpdate) and model._compiled_step is not None:
+    compiled = compiled_models(models)
+    for name, model in compiled.items():
+        if args.profile:
             print(f"\n{name}: top {args.profile} by own time, cProfile, {args.profile_steps} env steps")
             print("\n".join(profile_rows(model, args.profile_steps, args.profile)))
+    if args.step_calls and compiled:
+        print(f"\nThe compiled step's call alone, {args.step_calls} calls a round, medians of 5 interleaved rounds")
+        print("\n".join(step_call_rows(compiled, args.step_calls)))
 
 
 if __name__ == "__main__":

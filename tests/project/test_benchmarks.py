@@ -9,7 +9,8 @@ import pytest
 import torch as th
 import yaml
 
-from tests.helpers import COMPILED_GROUP, ROOT, compiled_settings, table_cells
+from sb3_sera import SERASAC
+from tests.helpers import COMPILED_GROUP, ROOT, benchmark_module, compiled_settings, snapshot, table_cells
 
 BENCHMARKS = ROOT / "benchmarks"
 TINY_TIMING = ["--blocks", "1", "--block-steps", "2", "--threads", "1"]
@@ -116,6 +117,26 @@ TINY_PEERS = ["--env", "Pendulum-v1", "--learning-starts", "20", "--blocks", "1"
 )
 def test_benchmark_script_runs(script, args, expected, monkeypatch, capsys):
     assert expected in run_in_this_process(script, args, monkeypatch, capsys)
+
+
+@COMPILED_GROUP["serasac"]
+def test_host_floor_times_the_compiled_step_with_and_without_its_guards(monkeypatch):
+    # The step the compiled SERASAC tests leave in Inductor's cache; the timed step is the probe, which changes nothing
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    host_floor = benchmark_module("host_floor")
+    model = SERASAC("MlpPolicy", "Pendulum-v1", seed=0, compile_update=True, **compiled_settings("serasac"))
+    model.learn(model.learning_starts + 2)
+    before = snapshot(model, optimizers=True)
+    header, _, row = host_floor.step_call_rows({"SERASAC compiled": model}, calls=3, rounds=1)
+    assert table_cells(header)[1:] == [
+        "the step's call, ms (IQR)",
+        "guards skipped, ms (IQR)",
+        "its tensors' layout checked in Python, ms (IQR)",
+    ]
+    name, *cells = table_cells(row)
+    assert name == "SERASAC compiled" and all(float(cell.split()[0]) > 0 for cell in cells)
+    after = snapshot(model, optimizers=True)
+    assert all(th.equal(before[key], after[key]) for key in before)
 
 
 def run_in_this_process(script: str, args: list[str], monkeypatch, capsys) -> str:
