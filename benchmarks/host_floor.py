@@ -57,6 +57,9 @@ from sb3_sera.common.mujoco_log import route_mujoco_warnings
 #: The parts of an env step, in the order the table prints them
 PARTS = ("acting", "env", "buffer", "train() host", "step", "read", "rest")
 
+#: Interleaved rounds of ``--step-calls`` calls each, per compiled model and kind (:func:`step_call_rows`)
+STEP_CALL_ROUNDS = 5
+
 #: Networks with nothing to compute: one hidden layer of 4 for the actor and each critic
 TINY: dict[str, Any] = dict(net_arch=[4])
 
@@ -218,7 +221,7 @@ def compiled_models(models: dict[str, tuple[BaseAlgorithm, Split]]) -> dict[str,
     }
 
 
-def step_call_rows(models: Mapping[str, BaseAlgorithm], calls: int, rounds: int = 5) -> list[str]:
+def step_call_rows(models: Mapping[str, BaseAlgorithm], calls: int, rounds: int = STEP_CALL_ROUNDS) -> list[str]:
     """
     The compiled models' built step alone, Markdown rows: the median ms a call over ``rounds`` interleaved rounds of
     ``calls`` calls on one batch, a step that changes nothing (``healthy`` false), with Dynamo's guards evaluated and
@@ -305,7 +308,10 @@ def main() -> None:
             print(f"\n{name}: top {args.profile} by own time, cProfile, {args.profile_steps} env steps")
             print("\n".join(profile_rows(model, args.profile_steps, args.profile)))
     if args.step_calls and compiled:
-        print(f"\nThe compiled step's call alone, {args.step_calls} calls a round, medians of 5 interleaved rounds")
+        print(
+            f"\nThe compiled step's call alone, {args.step_calls} calls a round, medians of {STEP_CALL_ROUNDS} "
+            "interleaved rounds"
+        )
         print("\n".join(step_call_rows(compiled, args.step_calls)))
 
 
