@@ -3,6 +3,7 @@ The masked Adam and Polyak updates of a compiled step against torch's own by han
 its random draws, and the compiled actor ``learn()`` acts through.
 """
 
+import logging
 import re
 from typing import NamedTuple
 
@@ -19,6 +20,7 @@ from sb3_sera.common.compiled import (
     graph_passes,
     masked_adam,
     masked_polyak,
+    modes,
     read_steps,
     step_options,
 )
@@ -241,3 +243,35 @@ def test_a_compiled_steps_first_call_says_it_compiles_and_logs_how_long_it_took(
     assert printed.count("SERASAC: compiling its gradient step (compile_update=False)") == 1
     assert re.search(r"SERASAC: gradient step compiled in \d+\.\d s", printed)
     assert model.logger.name_to_value["time/compile_seconds"] >= 0
+
+
+def test_building_a_step_prints_neither_the_median_shim_notice_nor_inductors_own_future_warning(recwarn):
+    # A step with both SERA's median and a diagonal (the critics' correlations), built afresh (no cache) without
+    # compile_step's silencing, then through compile_step: this torch prints both the first time, so the test sees
+    # what compile_step removes (two lambdas: two code objects, two builds)
+    def median_and_diagonal(q):
+        return th.median(q, dim=1).values.sum() + q.T.matmul(q).diagonal().sum()
+
+    q = th.randn(8, 5)
+    inductor_ir = logging.getLogger("torch._inductor.ir")
+    records: list[logging.LogRecord] = []
+    handler = logging.Handler()
+    handler.emit = records.append
+    inductor_ir.addHandler(handler)
+    try:
+        with th._inductor.config.patch(force_disable_caches=True):
+            inductor_ir.removeFilter(modes._drop_median_shim_notice)
+            options = step_options(True, th.device("cpu"))
+            th.compile(lambda q: median_and_diagonal(q), fullgraph=True, dynamic=False, options=options)(q)
+            assert [record.getMessage() for record in records] == [modes.MEDIAN_SHIM_NOTICE]
+            assert any("_prims_common.check` is deprecated" in str(w.message) for w in recwarn.list)
+            records.clear()
+            recwarn.clear()
+            built = modes.compile_step(lambda q: median_and_diagonal(q), True, th.device("cpu"))(q)
+    finally:
+        inductor_ir.removeHandler(handler)
+    assert th.allclose(built, median_and_diagonal(q))
+    assert records == []
+    assert not any("_prims_common.check` is deprecated" in str(w.message) for w in recwarn.list)
+    modes.hush_known_compile_notices()  # again: adds nothing
+    assert inductor_ir.filters.count(modes._drop_median_shim_notice) == 1

@@ -1,6 +1,7 @@
 """``compile_update``'s modes, and a gradient step through ``torch.compile`` in one of them."""
 
 import contextlib
+import logging
 import warnings
 from collections.abc import Callable, Iterator
 from typing import Any, Literal, TypeVar
@@ -46,6 +47,7 @@ def compile_step(step: Callable[..., _Output], mode: CompileMode, device: th.dev
     :meth:`.CompiledUpdate.learn` sets them for all its steps), with Inductor's options of :func:`step_options` for
     ``device``, the one the step runs on (None: any).
     """
+    hush_known_compile_notices()
     compiled = th.compile(step, fullgraph=True, dynamic=False, options=step_options(mode, device))
 
     def run(*args: Any, **kwargs: Any) -> _Output:
@@ -53,6 +55,38 @@ def compile_step(step: Callable[..., _Output], mode: CompileMode, device: th.dev
             return compiled(*args, **kwargs)
 
     return run
+
+
+#: What Inductor logs each time it builds SERA's median with ``cpp_wrapper`` (:func:`hush_known_compile_notices`)
+MEDIAN_SHIM_NOTICE = "aten.median.dim is missing a c-shim implementation, using proxy executor as fallback"
+
+
+class _DropMedianShimNotice(logging.Filter):
+    """Drops :data:`MEDIAN_SHIM_NOTICE` and nothing else."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return record.getMessage() != MEDIAN_SHIM_NOTICE
+
+
+_drop_median_shim_notice = _DropMedianShimNotice()
+
+
+def hush_known_compile_notices() -> None:
+    """
+    Silence the two notices torch prints as it builds a step, neither about anything a user did or can change: that
+    ``torch.median`` (SERA's anchor, whose index on ties :func:`~sb3_sera.sera.aggregation.median_anchor` keeps as
+    eager mode has it) has no C shim under ``cpp_wrapper``, so the C++ code calls it through the dispatcher (five
+    lines a model), and the ``FutureWarning`` Inductor's own lowering of ``diagonal`` raises about a torch helper it
+    calls. Only these two messages; every other log record and warning is left as it is, and calling it again adds
+    nothing.
+    """
+    logging.getLogger("torch._inductor.ir").addFilter(_drop_median_shim_notice)
+    warnings.filterwarnings(
+        "ignore",
+        message=r"`torch\._prims_common\.check` is deprecated",
+        category=FutureWarning,
+        module=r"torch\._inductor\.lowering",
+    )
 
 
 def step_options(mode: CompileMode, device: th.device | None = None) -> dict[str, Any]:
