@@ -2,6 +2,7 @@
 
 import contextlib
 import logging
+import re
 import warnings
 from collections.abc import Callable, Iterator
 from typing import Any, Literal, TypeVar
@@ -59,6 +60,8 @@ def compile_step(step: Callable[..., _Output], mode: CompileMode, device: th.dev
 
 #: What Inductor logs each time it builds SERA's median with ``cpp_wrapper`` (:func:`hush_known_compile_notices`)
 MEDIAN_SHIM_NOTICE = "aten.median.dim is missing a c-shim implementation, using proxy executor as fallback"
+#: How the ``FutureWarning`` Inductor's lowering of ``diagonal`` raises begins (:func:`hush_known_compile_notices`)
+LOWERING_CHECK_WARNING = "`torch._prims_common.check` is deprecated"
 
 
 class _DropMedianShimNotice(logging.Filter):
@@ -76,14 +79,14 @@ def hush_known_compile_notices() -> None:
     Silence the two notices torch prints as it builds a step, neither about anything a user did or can change: that
     ``torch.median`` (SERA's anchor, whose index on ties :func:`~sb3_sera.sera.aggregation.median_anchor` keeps as
     eager mode has it) has no C shim under ``cpp_wrapper``, so the C++ code calls it through the dispatcher (five
-    lines a model), and the ``FutureWarning`` Inductor's own lowering of ``diagonal`` raises about a torch helper it
-    calls. Only these two messages; every other log record and warning is left as it is, and calling it again adds
-    nothing.
+    lines each time a step is built afresh, none where it comes from Inductor's cache), and the ``FutureWarning``
+    Inductor's own lowering of ``diagonal`` raises about a torch helper it calls. Only these two messages; every
+    other log record and warning is left as it is, and calling it again adds nothing.
     """
     logging.getLogger("torch._inductor.ir").addFilter(_drop_median_shim_notice)
     warnings.filterwarnings(
         "ignore",
-        message=r"`torch\._prims_common\.check` is deprecated",
+        message=re.escape(LOWERING_CHECK_WARNING),
         category=FutureWarning,
         module=r"torch\._inductor\.lowering",
     )
