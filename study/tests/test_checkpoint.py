@@ -61,9 +61,21 @@ ROLLOUT = {"mappo": 64}
 
 
 def _last_checkpoint(stop: int, rollout: int, every: int = 100) -> int:
-    """The step of the last checkpoint before ``stop``: the first rollout start at or past each multiple of ``every``."""
-    starts = range(0, stop + 1, rollout)
+    """
+    The step of the last checkpoint before a kill at step ``stop``: the first rollout start at or past each multiple of
+    ``every``, among the rollouts started before the kill (the step that reaches ``stop`` ends the rollout it is in, so
+    a checkpoint due as the next one starts is never taken)
+    """
+    starts = range(0, stop, rollout)
     return max(min(start for start in starts if start >= mark) for mark in range(every, starts[-1] + 1, every))
+
+
+@pytest.mark.parametrize(
+    ("stop", "rollout", "expected"),
+    [(300, 1, 200), (301, 1, 300), (256, 64, 128), (257, 64, 256), (320, 64, 256), (321, 64, 320), (369, 64, 320)],
+)
+def test_the_last_checkpoint_before_a_kill_by_hand(stop, rollout, expected):
+    assert _last_checkpoint(stop, rollout) == expected
 
 
 @pytest.mark.parametrize(
@@ -120,7 +132,7 @@ def test_an_interrupted_run_resumes_to_the_same_final_parameters(tmp_path, monke
     assert (
         resume["from_step"] == _last_checkpoint(_Stop.at, ROLLOUT.get(algo, 1))
         and resume["code_before"] == resume["code_after"]
-    )
+    ), f"a kill at step {_Stop.at}"
     assert load_result(straight).resumes == [] and not (resumed / engine.RESUMES_FILE).exists()
 
 
