@@ -145,7 +145,13 @@ def results_block(ledger: str | Path | LedgerResults = LEDGER_DIR, reps: int = L
     if not runs:
         lines += ["The ledger holds no finished run yet.", ""]
     if held:
-        lines += ["Held back from every table, figure and claim until the claim has its planned runs:", "", *held, ""]
+        lines += [
+            "Held back from every table, figure and claim until the claim, and every claim sharing its runs, has its "
+            "planned runs:",
+            "",
+            *held,
+            "",
+        ]
     if family_sizes(decided):
         primary = [r for r in decided if r.claim.primary]
         lines += [*claims_section(primary), ""]

@@ -351,3 +351,11 @@ def test_an_interim_claim_holds_its_runs_back_from_every_table(bench_out, tmp_pa
     shown, _, held = ledger.published_runs(results)
     assert len(shown) == 2 and not held
     assert "| serasac | 1 |" in ledger.results_block(results)
+    # A claim with all its runs that shares runs with an interim one is held with it, as a family decided together
+    whole = claim.replace("id: toy,", "id: whole,").replace("planned: 2", "planned: 1")
+    (results / "claims.yml").write_text(f"alpha: 0.05\nclaims:\n  - {claim}\n  - {whole}\n")
+    shown, _, held = ledger.published_runs(results)
+    assert not shown and held == [
+        "- toy: 1 of serasac and 1 of sac (2 an arm planned)",
+        "- whole: 1 of serasac and 1 of sac (1 an arm planned; held with toy)",
+    ]
