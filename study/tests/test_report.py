@@ -395,3 +395,25 @@ def test_a_curves_title_says_where_the_curves_end_when_before_the_budget():
     group = SimpleNamespace(runs=[SimpleNamespace(timesteps=[1000, 2000, 3000, 4000])])
     assert _curves_title("HalfCheetah-v5", 4500, [group]) == "HalfCheetah-v5, 4,500-step runs (last evaluation at 4,000)"
     assert _curves_title("HalfCheetah-v5", 4000, [group]) == "HalfCheetah-v5, 4,000-step runs"
+
+
+def test_the_curves_at_the_papers_budget_carry_its_values(tmp_path, monkeypatch):
+    from sera_study.report import figures
+    from sera_study.report.write import _paper_points
+
+    for variant, algo, first_id in (("serasac", "serasac", 1), ("masac", "masac", 3), ("sac", "sac", 5)):
+        for seed in range(2):
+            fake_run(tmp_path, variant, first_id + seed, seed, [1.0, 2.0, 3.0], budget=300_000, algo=algo)
+    groups = group_runs(load_runs([tmp_path])[0])
+    # The paper's Table 1 values of the variants it reports (not SAC), and none on curves that stop short of 300K
+    paper = _paper_points(TASK, 300_000, groups)
+    assert paper == {"serasac": (5520, 711), "masac": (4500, 802)}
+    assert _paper_points(TASK, 50_000, groups) == {}
+    drawn = []
+    monkeypatch.setattr(figures, "save_figure", lambda fig, path: drawn.append(fig))
+    colors = figures.variant_colors([group.variant for group in groups])
+    figures.plot_curves(groups, "returns", "return", "title", tmp_path / "curves.png", colors, REPS, paper=paper)
+    bars = drawn[0].axes[0].containers
+    assert sorted(tuple(bar.lines[0].get_xydata()[0]) for bar in bars) == [(300_000, 4500), (300_000, 5520)]
+    assert {bar.lines[0].get_color() for bar in bars} == {colors["serasac"], colors["masac"]}
+    figures.pyplot().close(drawn[0])

@@ -17,6 +17,7 @@ from numpy.typing import ArrayLike
 from sera_study import stats
 from sera_study.measures import load_diagnostics
 from sera_study.report.groups import RunGroup
+from sera_study.report.paper import PAPER_NAMES, PAPER_STEPS
 from sera_study.report.tables import MIN_RUNS
 
 #: Points of the common grid onto which curves evaluated at different steps are interpolated
@@ -125,11 +126,13 @@ def _linestyles(groups: Sequence[RunGroup]) -> dict[int, str]:
 
 def plot_curves(
     groups: Sequence[RunGroup], attribute: str, ylabel: str, title: str, path: Path, colors: dict[str, Any], reps: int,
-    zero_line: bool = False,
+    zero_line: bool = False, paper: dict[str, tuple[float, float]] | None = None,
 ) -> list[str]:  # fmt: skip
     """
     A per-run list (``returns`` or ``initial_state_bias``) against steps: IQM over each group's runs and its interval.
 
+    :param paper: per variant, the paper's (mean, std) at :data:`~sera_study.report.paper.PAPER_STEPS`, drawn there
+        as a marker with its std as a bar in the variant's colour
     :return: sentences on interpolated grids
     """
     plt = pyplot()
@@ -149,6 +152,11 @@ def plot_curves(
                 notes.append(f"{group.label}: {note}")
     if zero_line:
         ax.axhline(0.0, color="black", linewidth=0.8)
+    for variant, (mean, std) in (paper or {}).items():
+        ax.errorbar(
+            PAPER_STEPS, mean, yerr=std, color=colors[variant], marker="D", capsize=4, linestyle="none",
+            label=f"paper, {PAPER_NAMES[variant]} (mean ± std)",
+        )  # fmt: skip
     ax.set_xlabel("environment steps")
     ax.set_ylabel(ylabel)
     ax.set_title(f"{title}\nIQM over runs, band: 95% stratified-bootstrap CI (n >= {MIN_RUNS})", fontsize=10)

@@ -4,6 +4,9 @@ The paper's fixed numbers: the means and standard deviations of Table 1 (multi-a
 tasks.
 """
 
+#: The budget at which the paper reports every task (its Table 1 and 2)
+PAPER_STEPS = 300_000
+
 #: Paper Table 1 (multi-agent, 300K steps) and Table 2 (single-agent): (mean, std) of the team return
 PAPER_RESULTS: dict[str, dict[str, tuple[float, float]]] = {
     "sb3_sera/HalfCheetah-6x1-v0": {
@@ -37,6 +40,11 @@ PAPER_NAMES = {
     "serasac": "SERA", "ensemble_mean": "Ensemble Mean", "masac": "MASAC", "matd3": "MATD3", "mappo": "MAPPO",
     "sera_nolr": "SERA-NoLR", "sera_median": "SERA-Median", "sunrise": "SUNRISE", "ace": "ACE", "iet": "IET",
 }  # fmt: skip
+
+
+def paper_value(env_id: str, variant: str) -> tuple[float, float] | None:
+    """The paper's (mean, std) at :data:`PAPER_STEPS` for one of our variants on a task, or None where it has none."""
+    return PAPER_RESULTS.get(env_id, {}).get(PAPER_NAMES.get(variant, ""))
 
 
 def paper_reference(env_id: str) -> tuple[float, float] | None:

@@ -14,7 +14,7 @@ from sera_study.claims import group_settings, groups_unmatched
 from sera_study.records import FINAL_EVALUATIONS
 from sera_study.registry import unmatched_settings, unmatched_text
 from sera_study.report.groups import RunGroup, differing_keys
-from sera_study.report.paper import PAPER_NAMES, PAPER_RESULTS
+from sera_study.report.paper import PAPER_NAMES, PAPER_RESULTS, paper_value
 
 #: The variant every other row is compared against
 REFERENCE = "serasac"
@@ -63,8 +63,8 @@ def section_table(groups: Sequence[RunGroup], reps: int) -> list[str]:
     ]
     for group in groups:
         finals, aucs = group.finals, group.aucs
-        paper_value = paper.get(PAPER_NAMES.get(group.variant, ""))
-        paper_cell = "" if paper_value is None else f"{paper_value[0]:g} ± {paper_value[1]:g}"
+        published = paper_value(env_id, group.variant)
+        paper_cell = "" if published is None else f"{published[0]:g} ± {published[1]:g}"
         improvement_cell = p_cell = poi_cell = ""
         unmatched = groups_unmatched(reference, group) if reference is not None and group is not reference else {}
         if unmatched:

@@ -24,6 +24,7 @@ from sera_study.report.figures import (
 )
 from sera_study.report.groups import RunGroup, group_runs
 from sera_study.report.load import Skipped, load_runs
+from sera_study.report.paper import PAPER_STEPS, paper_value
 from sera_study.report.tables import section_notes, section_table
 
 
@@ -31,6 +32,17 @@ def _curves_title(env_id: str, budget: int, groups: Sequence[RunGroup]) -> str:
     """The learning curves' title: the task and the runs' budget, and the last evaluation where the curves end before it."""
     last = max((run.timesteps[-1] for group in groups for run in group.runs if run.timesteps), default=budget)
     return f"{env_id}, {budget:,}-step runs" + (f" (last evaluation at {last:,})" if last < budget else "")
+
+
+def _paper_points(env_id: str, budget: int, groups: Sequence[RunGroup]) -> dict[str, tuple[float, float]]:
+    """
+    The paper's value of each variant drawn on the learning curves, where the runs reach the paper's budget (below
+    it, a point at 300K would squeeze the curves into a sixth of the axis).
+    """
+    if budget < PAPER_STEPS:
+        return {}
+    values = {group.variant: paper_value(env_id, group.variant) for group in groups}
+    return {variant: value for variant, value in values.items() if value is not None}
 
 
 def write_report(
@@ -95,6 +107,7 @@ def write_report(
             path=folder / f"{stem}_curves.png",
             colors=colors,
             reps=reps,
+            paper=_paper_points(env_id, budget, groups),
         )
         lines += [f"![{env_id} learning curves]({stem}_curves.png)", ""]
         lines += [f"- {note}" for note in grid_notes] + ([""] if grid_notes else [])
