@@ -54,8 +54,11 @@ def find_ledger(start: str | Path | None = None) -> Path:
 
 
 def study_runs(env_id: str, n_timesteps: int, variants: Sequence[str], ledger: str | Path | None = None) -> list[RunResult]:
-    """The ledger's finished runs of ``variants`` on one task and budget (see :func:`find_ledger`)."""
-    runs, _ = load_runs([find_ledger() if ledger is None else ledger])
+    """
+    The ledger's finished runs of ``variants`` on one task and budget that its pages show (see :func:`find_ledger`;
+    none an interim claim holds back: :func:`published_runs`).
+    """
+    runs, _, _ = published_runs(find_ledger() if ledger is None else ledger)
     return [run for run in runs if run.env_id == env_id and run.n_timesteps == n_timesteps and run.variant in variants]
 
 

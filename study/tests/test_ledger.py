@@ -344,12 +344,14 @@ def test_an_interim_claim_holds_its_runs_back_from_every_table(bench_out, tmp_pa
     intake.add_runs([bench_out], results)
     shown, _, held = ledger.published_runs(results)
     assert not shown and held == ["- toy: 1 of serasac and 1 of sac (2 an arm planned)"]
+    assert ledger.study_runs("Pendulum-v1", 200, ["serasac", "sac"], results) == []  # nor do the notebooks
     block = ledger.results_block(results)
     assert "- toy: 1 of serasac and 1 of sac (2 an arm planned)" in block and "| serasac | 1 |" not in block
     # Once the claim needs no more runs (planned 1), the runs and the claim's numbers appear
     (results / "claims.yml").write_text(f"alpha: 0.05\nclaims:\n  - {claim.replace('planned: 2', 'planned: 1')}\n")
     shown, _, held = ledger.published_runs(results)
     assert len(shown) == 2 and not held
+    assert len(ledger.study_runs("Pendulum-v1", 200, ["serasac", "sac"], results)) == 2
     assert "| serasac | 1 |" in ledger.results_block(results)
     # A claim with all its runs that shares runs with an interim one is held with it, as a family decided together
     whole = claim.replace("id: toy,", "id: whole,").replace("planned: 2", "planned: 1")

@@ -43,15 +43,16 @@ def outputs_of(notebook: nbformat.NotebookNode) -> tuple[str, int]:
     return text, sum("image/png" in output.get("data", {}) for output in outputs)
 
 
-def ledger_run(ledger: Path, variant: str, env_id: str, seed: int, n_critics: int) -> None:
-    """A finished 50K-step study run's records, as the ledger keeps them."""
+def ledger_run(ledger: Path, variant: str, env_id: str, seed: int, n_critics: int, budget: int = 50000) -> None:
+    """A finished study run's records, as the ledger keeps them."""
     name = env_id.replace("/", "-")
-    folder = ledger / variant / f"{name}_{seed + 1}"
+    folder = ledger / variant / f"{name}_{seed + 1 + (budget != 50000) * 10}"
     (folder / name).mkdir(parents=True)
-    args = {"algo": variant, "variant": variant, "env": env_id, "seed": seed, "n_timesteps": 50000, "git_commit": "0" * 40}
+    algo = "serasac" if variant == "ensemble_mean" else variant
+    args = {"algo": algo, "variant": variant, "env": env_id, "seed": seed, "n_timesteps": budget, "git_commit": "0" * 40}
     (folder / name / "args.yml").write_text(yaml.safe_dump(args))
-    (folder / name / "config.yml").write_text(yaml.safe_dump({"n_timesteps": 50000, "learning_starts": 10000}))
-    steps = np.array([10000, 30000, 50000])
+    (folder / name / "config.yml").write_text(yaml.safe_dump({"n_timesteps": budget, "learning_starts": 10000}))
+    steps = np.array([10000, budget * 3 // 5, budget])
     rng = np.random.default_rng(seed)
     returns = np.array([0.0, 1000.0, 2000.0]) + 100 * seed
     np.savez(folder / "evaluations.npz", timesteps=steps, results=returns[:, None] + rng.normal(size=(3, 2)))
@@ -95,6 +96,11 @@ def test_notebook_opens_on_the_ledger_without_training(path, tmp_path, monkeypat
     for variant in variants:
         for seed in range(3):
             ledger_run(ledger, variant, env_id, seed, n_critics if variant == "serasac" else 2)
+    # The multi-agent notebook's last section: the paper's budget, SERA against MASAC and Ensemble Mean at 300K
+    at_paper_budget = path.stem == "serasac_vs_masac_multiagent"
+    for variant in ("serasac", "ensemble_mean", "masac") if at_paper_budget else ():
+        for seed in range(3):
+            ledger_run(ledger, variant, env_id, seed, n_critics if variant != "masac" else 2, budget=300000)
     cwd, temporary = tmp_path / "cwd", tmp_path / "tmp"
     cwd.mkdir()
     temporary.mkdir()
@@ -102,9 +108,11 @@ def test_notebook_opens_on_the_ledger_without_training(path, tmp_path, monkeypat
     text, images = outputs_of(notebook)
     assert f"6 runs of {env_id} at 50,000 steps" in text
     assert "final return IQM [95% CI]" in text and "| serasac | 3 |" in text
-    # Curves, bias, AUC, diagnostics and correlation matrices, nothing trained or written beside the notebook, and
-    # the figures' temporary folder gone with the kernel
-    assert images == 5
+    # At 300K: the three arms' table and their curves beside the paper's values
+    assert ("| ensemble_mean | 3 | " in text and "4831 ± 721" in text) == at_paper_budget
+    # Curves, bias, AUC, diagnostics and correlation matrices (and the 300K curves), nothing trained or written
+    # beside the notebook, and the figures' temporary folder gone with the kernel
+    assert images == 5 + at_paper_budget
     assert not list(cwd.iterdir()) and not list(ledger.rglob("*.zip")) and not list(temporary.iterdir())
 
 
