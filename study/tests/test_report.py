@@ -414,6 +414,7 @@ def test_the_curves_at_the_papers_budget_carry_its_values(tmp_path, monkeypatch)
     colors = figures.variant_colors([group.variant for group in groups])
     figures.plot_curves(groups, "returns", "return", "title", tmp_path / "curves.png", colors, REPS, paper=paper)
     bars = drawn[0].axes[0].containers
-    assert sorted(tuple(bar.lines[0].get_xydata()[0]) for bar in bars) == [(300_000, 4500), (300_000, 5520)]
+    # at the paper's budget, side by side
+    assert sorted(tuple(bar.lines[0].get_xydata()[0]) for bar in bars) == [(297_750, 5520), (302_250, 4500)]
     assert {bar.lines[0].get_color() for bar in bars} == {colors["serasac"], colors["masac"]}
     figures.pyplot().close(drawn[0])
