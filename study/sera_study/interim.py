@@ -27,7 +27,8 @@ def held_back(claims: Sequence[Claim] | None, runs: Sequence[RunResult]) -> tupl
         for claim in claims
         if claim.planned and any(counts[claim.id].values()) and min(counts[claim.id].values()) < claim.planned
     ]
-    holding = [claim for claim in claims if any(claim is short or claim.shares_runs(short) for short in interim)]
+    # shares_runs holds of a claim and itself, so the interim claims are among those holding
+    holding = [claim for claim in claims if any(claim.shares_runs(short) for short in interim)]
     kept = [run for run in runs if not any(claim.reads(run) for claim in holding)]
     lines = []
     for claim in holding:

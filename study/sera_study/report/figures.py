@@ -152,9 +152,10 @@ def plot_curves(
                 notes.append(f"{group.label}: {note}")
     if zero_line:
         ax.axhline(0.0, color="black", linewidth=0.8)
-    for index, (variant, (mean, std)) in enumerate((paper or {}).items()):
+    paper = paper or {}
+    for index, (variant, (mean, std)) in enumerate(paper.items()):
         # Side by side about the paper's budget, a step apart of 1.5% of it, so that no bar hides another
-        dodge = (index - (len(paper or {}) - 1) / 2) * 0.015 * PAPER_STEPS
+        dodge = (index - (len(paper) - 1) / 2) * 0.015 * PAPER_STEPS
         ax.errorbar(
             PAPER_STEPS + dodge, mean, yerr=std, color=colors[variant], marker="D", capsize=4, linestyle="none",
             label=f"paper, {PAPER_NAMES[variant]} (mean ± std)",
