@@ -16,10 +16,15 @@ is the median over blocks with the interquartile range; the ratio is the referen
     python benchmarks/baselines_speed.py --env HalfCheetah-v5 --blocks 10 --block-steps 50
     python benchmarks/baselines_speed.py --env sb3_sera/HalfCheetah-6x1-v0 --blocks 10 --block-steps 50
     python benchmarks/baselines_speed.py --algos SAC SERASAC TQC CrossQ --mode learn --threads 1   # one core
+
+The names with a suffix are SERASAC compiled (``compile_update=True``), with DroQ's or CrossQ's critics, and with two
+gradient steps an environment step (``UTD2``): the configurations of issue 90's screen, whose other settings (learning
+rates, the entropy coefficient's start, ``learning_starts``) change no step's cost.
 """
 
 import argparse
 from collections.abc import Callable
+from functools import partial
 
 import torch as th
 from sb3_contrib import TQC, CrossQ
@@ -30,6 +35,9 @@ from timing import add_interleave_arguments, interleaved_rates, median_iqr
 from sb3_sera import ACE, IET, MASAC, SERASAC, SUNRISE
 from sb3_sera.common.mujoco_log import route_mujoco_warnings
 
+#: SERASAC's normalized critics (issue 90's screen), compiled as the screen runs them
+DROQ = dict(layer_norm=True, dropout_rate=0.01)
+CROSSQ = dict(batch_norm=True)
 ALGORITHMS: dict[str, Callable[..., OffPolicyAlgorithm]] = {
     "SAC": SAC,
     "MASAC": MASAC,
@@ -39,6 +47,11 @@ ALGORITHMS: dict[str, Callable[..., OffPolicyAlgorithm]] = {
     "IET": IET,
     "TQC": TQC,
     "CrossQ": CrossQ,
+    "SERASAC-compiled": partial(SERASAC, compile_update=True),
+    "SERASAC-DroQ": partial(SERASAC, compile_update=True, policy_kwargs=DROQ),
+    "SERASAC-CrossQ": partial(SERASAC, compile_update=True, policy_kwargs=CROSSQ),
+    "SERASAC-DroQ-UTD2": partial(SERASAC, compile_update=True, policy_kwargs=DROQ, gradient_steps=2),
+    "SERASAC-CrossQ-UTD2": partial(SERASAC, compile_update=True, policy_kwargs=CROSSQ, gradient_steps=2),
 }
 #: The algorithms each kind of task runs by default, the reference first
 SINGLE_AGENT = ["SAC", "SERASAC", "SUNRISE", "ACE", "TQC", "CrossQ"]
@@ -69,14 +82,15 @@ def main() -> None:
         model = ALGORITHMS[name](policy, args.env, seed=args.seed, learning_starts=args.learning_starts)
         model.learn(args.learning_starts)  # fills the buffer; no gradient step before learning_starts
         models[name] = model
-    what = "train() only" if args.mode == "train" else "learn(): env steps, each with its gradient step"
+    what = "train() only" if args.mode == "train" else "learn(): env steps, each with its gradient steps"
     print(f"{args.env}, {args.threads} torch thread(s), torch {th.__version__}, {what}")
-    print(f"{'algorithm':<10} {'batch':>6} {'steps/s (median)':>17} {'IQR':>15}  ratio ({reference} rate / rate)")
+    width = max(len(name) for name in names)
+    print(f"{'algorithm':<{width}} {'batch':>6} {'steps/s (median)':>17} {'IQR':>15}  ratio ({reference} rate / rate)")
     rates = interleaved_rates(models, args.mode, args.blocks, args.block_steps, args.batch_size, args.warmup_blocks)
     stats = {name: median_iqr(values) for name, values in rates.items()}
     for name, (median, low, high) in stats.items():
         batch = args.batch_size or models[name].batch_size
-        print(f"{name:<10} {batch:>6} {median:>17.1f} {f'{low:.1f}-{high:.1f}':>15}  {stats[reference][0] / median:.2f}x")
+        print(f"{name:<{width}} {batch:>6} {median:>17.1f} {f'{low:.1f}-{high:.1f}':>15}  {stats[reference][0] / median:.2f}x")
 
 
 if __name__ == "__main__":

@@ -21,6 +21,7 @@ from stable_baselines3.sac.policies import SACPolicy
 from torch import nn
 
 from sb3_sera.common.hyperparameters import check_int
+from sb3_sera.common.normalization import CriticNorm, renorm_layers, set_renorm_training
 from sb3_sera.common.training_flags import ActorCriticTrainingMode
 from sb3_sera.ctde.policies import CTDEPolicyMixin
 
@@ -104,6 +105,8 @@ class HeterogeneousCritics(BaseModel):
     :param normalize_images: Whether to normalize images or not, dividing by 255.0
     :param share_features_extractor: Whether the features extractor is shared with the actor
         (then it is only trained through the actor loss)
+    :param norm: how each critic's layers are normalized (:class:`~sb3_sera.common.normalization.CriticNorm`; None:
+        plain MLPs). With batch renormalization the critics have no target networks (:attr:`target_free`)
     """
 
     features_extractor: BaseFeaturesExtractor
@@ -118,6 +121,7 @@ class HeterogeneousCritics(BaseModel):
         activation_fn: type[nn.Module] = nn.ReLU,
         normalize_images: bool = True,
         share_features_extractor: bool = True,
+        norm: CriticNorm | None = None,
     ):
         super().__init__(
             observation_space,
@@ -129,11 +133,35 @@ class HeterogeneousCritics(BaseModel):
         self.share_features_extractor = share_features_extractor
         self.critic_archs = critic_archs
         self.n_critics = len(critic_archs)
+        self.norm = norm = norm or CriticNorm()
+        #: Whether the critics train without target networks: batch-renormalized critics read the next state and
+        #: action in the same forward pass as the replayed ones (CrossQ's recipe)
+        self.target_free = norm.batch_norm
         self.q_networks: list[nn.Module] = []
         for idx, arch in enumerate(critic_archs):
-            q_net = nn.Sequential(*create_mlp(features_dim + action_dim, 1, arch, activation_fn))
+            layers = create_mlp(
+                features_dim + action_dim,
+                1,
+                arch,
+                activation_fn,
+                pre_linear_modules=norm.pre_linear_modules,  # type: ignore[arg-type]
+                post_linear_modules=norm.post_linear_modules,  # type: ignore[arg-type]
+            )
+            q_net = nn.Sequential(*layers)
             self.add_module(f"qf{idx}", q_net)
             self.q_networks.append(q_net)
+        self._renorm_layers = renorm_layers(self)
+
+    def set_bn_training_mode(self, mode: bool) -> None:
+        """
+        Put the batch renormalization layers (where the critics have them) in training mode (batch statistics, the
+        running ones updated) or evaluation mode (the running statistics), as sb3-contrib's CrossQ critic does.
+        """
+        set_renorm_training(self._renorm_layers, mode)
+
+    def bn_training_mode(self) -> bool:
+        """Whether the batch renormalization layers are in training mode (False where there are none)."""
+        return bool(self._renorm_layers) and self._renorm_layers[0].training
 
     def q_input(self, obs: PyTorchObs, actions: th.Tensor) -> th.Tensor:
         """The critics' common input: features of ``obs`` concatenated with ``actions``."""
@@ -226,6 +254,15 @@ class SERAPolicy(ActorCriticTrainingMode, SACPolicy):
     :param n_critics: Number of critics, at least 2 (default 5, as in the paper)
     :param critic_archs: Hidden layer sizes of each critic (``n_critics`` lists), overrides ``net_arch``
     :param share_features_extractor: Whether to share the features extractor between the actor and the critics
+    :param layer_norm: LayerNorm after each hidden linear layer of every critic (DroQ's critics, SBX's argument)
+    :param dropout_rate: dropout after each hidden linear layer of every critic, in [0, 1) (DroQ: 0.01; SBX's argument)
+    :param batch_norm: batch renormalization before each linear layer of every critic, and no target critics: the
+        TD target comes from the online critics, run on the replayed and the next pairs in one forward pass, and the
+        actor reads the critics with their running statistics (CrossQ's recipe, sb3-contrib's argument)
+    :param batch_norm_momentum: rate at which the running statistics follow the batches', in (0, 1]
+    :param batch_norm_eps: added to the variances, > 0
+    :param renorm_warmup_steps: critic forward passes in training mode (one per gradient step) before the running
+        statistics renormalize the batches' (batch normalization until then), as sb3-contrib's CrossQ
     """
 
     critic: HeterogeneousCritics  # type: ignore[assignment]
@@ -250,8 +287,17 @@ class SERAPolicy(ActorCriticTrainingMode, SACPolicy):
         n_critics: int = DEFAULT_N_CRITICS,
         critic_archs: list[list[int]] | None = None,
         share_features_extractor: bool = False,
+        layer_norm: bool = False,
+        dropout_rate: float = 0.0,
+        batch_norm: bool = False,
+        batch_norm_momentum: float = 0.01,
+        batch_norm_eps: float = 0.001,
+        renorm_warmup_steps: int = 100_000,
     ):
         n_critics = check_n_critics(n_critics)
+        self.critic_norm = CriticNorm(
+            layer_norm, dropout_rate, batch_norm, batch_norm_momentum, batch_norm_eps, renorm_warmup_steps
+        ).checked()
         if isinstance(net_arch, dict) and "qf" not in net_arch:
             # Only the actor is specified: the critics keep their own architectures
             net_arch = {**net_arch, "qf": []}
@@ -286,6 +332,9 @@ class SERAPolicy(ActorCriticTrainingMode, SACPolicy):
 
     def _build(self, lr_schedule: Schedule) -> None:
         super()._build(lr_schedule)
+        if self.critic.target_free:
+            # No target networks: the name SB3's code reads them under holds the critics themselves
+            self.critic_target = self.critic
         # SACPolicy built one parameter group for all critics: rebuild with one group per critic, so that
         # each critic can have its own step size
         self.critic.optimizer = self.optimizer_class(
@@ -298,11 +347,11 @@ class SERAPolicy(ActorCriticTrainingMode, SACPolicy):
         critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
         # SACPolicy's kwargs describe a homogeneous ensemble: replace them by the per-critic architectures
         del critic_kwargs["net_arch"], critic_kwargs["n_critics"]
-        return HeterogeneousCritics(critic_archs=self.critic_archs, **critic_kwargs).to(self.device)
+        return HeterogeneousCritics(critic_archs=self.critic_archs, norm=self.critic_norm, **critic_kwargs).to(self.device)
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
-        data.update(critic_archs=self.critic_archs)
+        data.update(critic_archs=self.critic_archs, **self.critic_norm.kwargs())
         return data
 
 

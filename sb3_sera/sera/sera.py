@@ -431,7 +431,7 @@ class SERASAC(NamedRuns, ChecksEnvSteps, Capabilities, CompiledUpdate, SAC):
             self._adam_plans,
             states,
             critic=self.critic,
-            critic_target=self.critic_target,
+            critic_target=None if self.critic.target_free else self.critic_target,
             tau=self.tau,
             ent_coef=ent_coef,
             ent_coef_loss=ent_coef_loss,
@@ -552,8 +552,11 @@ class SERASAC(NamedRuns, ChecksEnvSteps, Capabilities, CompiledUpdate, SAC):
         logged["actor_loss"].append(actor_loss.detach())
 
     def _target_step(self, gradient_step: int) -> None:
-        """Polyak-update the target critics when due (:func:`~sb3_sera.common.off_policy.target_update_due`)."""
-        if not target_update_due(self._n_updates, gradient_step, self.target_update_interval):
+        """
+        Polyak-update the target critics when due (:func:`~sb3_sera.common.off_policy.target_update_due`); critics
+        without targets (batch-renormalized) have none.
+        """
+        if self.critic.target_free or not target_update_due(self._n_updates, gradient_step, self.target_update_interval):
             return
         with th.no_grad():
             th._foreach_mul_(self._critic_target_parameters, 1.0 - self.tau)

@@ -6,6 +6,7 @@ functions in the same order; only how the gradients are applied differs (torch's
 one graph).
 """
 
+from collections.abc import Callable
 from typing import NamedTuple
 
 import torch as th
@@ -69,7 +70,8 @@ def critic_update(
     """
     The critic update on a batch (Algorithm 2, lines 5-16), computed, nothing changed yet: TD target from the
     aggregated target critics at next actions drawn from the current actor, the online critics' values and loss,
-    and the step-size update (not yet committed).
+    and the step-size update (not yet committed). Critics without targets (``critic.target_free``) give the next
+    values themselves, in the forward pass that gives the current ones.
 
     :param gamma: the discount factor (n-step batches carry their own discounts)
     :param aggregation: how the target critics' values form the target (:data:`~sb3_sera.sera.aggregation.TARGET_RULES`)
@@ -80,13 +82,26 @@ def critic_update(
     with th.no_grad():
         next_actions, next_log_prob = actor.action_log_prob(replay_data.next_observations)
         next_log_prob = next_log_prob.reshape(-1, 1)
-        # Target critics' values q_i(s', a'), shape (S, K), aggregated to one target per sample
-        next_q_values = critic_target.q_values(replay_data.next_observations, next_actions)
+    if critic.target_free:
+        # No target critics (CrossQ's recipe): the online critics read (s, a) and (s', a') in one forward pass, so
+        # that both halves share the batch statistics of batch renormalization
+        joint_q_values = critic.q_values(
+            joined(replay_data.observations, replay_data.next_observations),
+            th.cat([replay_data.actions, next_actions]),
+        )
+        current_q_values, next_q_values = joint_q_values.split(len(replay_data.actions))
+        next_q_values = next_q_values.detach()
+    else:
+        with th.no_grad():
+            # Target critics' values q_i(s', a'), shape (S, K)
+            next_q_values = critic_target.q_values(replay_data.next_observations, next_actions)
+        current_q_values = critic.q_values(replay_data.observations, replay_data.actions)
+    with th.no_grad():
+        # Aggregated to one target per sample
         next_q_aggregate = aggregate_target(next_q_values, aggregation, options).unsqueeze(1)
         next_q = next_q_aggregate - ent_coef * next_log_prob
         target_q_values = replay_data.rewards + (1 - replay_data.dones) * discounts * next_q
     # Each online critic regresses on the same target: delta_i = y - Q_i(s, a), shape (S, K)
-    current_q_values = critic.q_values(replay_data.observations, replay_data.actions)
     td_errors = target_q_values - current_q_values
     critic_loss = 0.5 * td_errors.pow(2).mean(dim=0).sum()
     # Variance-adaptive step size from detached tensors (stored by the caller once checked)
@@ -127,23 +142,52 @@ def entropy_target(
     return target, -(log_ent_coef * (log_prob + target).detach()).mean()
 
 
+def joined(first: PyTorchObs, second: PyTorchObs) -> PyTorchObs:
+    """Two batches of observations as one, ``first``'s rows then ``second``'s (key by key for ``Dict`` observations)."""
+    if isinstance(first, dict):
+        assert isinstance(second, dict)
+        return {key: th.cat([first[key], second[key]]) for key in first}
+    assert isinstance(second, th.Tensor)
+    return th.cat([first, second])
+
+
+def with_running_statistics(critic: HeterogeneousCritics, value: Callable[[], th.Tensor]) -> th.Tensor:
+    """
+    ``value()`` with the critics' batch renormalization layers (where there are any) in evaluation mode: the actor's
+    loss reads the critics with their running statistics, as sb3-contrib's CrossQ does, and changes none of them.
+    """
+    mode = critic.bn_training_mode()
+    critic.set_bn_training_mode(False)
+    result = value()
+    critic.set_bn_training_mode(mode)
+    return result
+
+
 def actor_value(
     critic: HeterogeneousCritics, observations: PyTorchObs, actions_pi: th.Tensor, aggregation: ActorAggregation
 ) -> th.Tensor:
     """
-    The online critics' value of the actor's actions, aggregated by ``aggregation``, shape ``(S, 1)``.
+    The online critics' value of the actor's actions, aggregated by ``aggregation``, shape ``(S, 1)``; batch
+    renormalization reads its running statistics (:func:`with_running_statistics`).
 
     For the median and the min only the selected critic carries a gradient, so all critics run without a graph to
-    find it and only the selected one runs again, per sample, with a graph.
+    find it and only the selected one runs again, per sample, with a graph; critics with dropout run once
+    (:func:`actor_value_gathered`), so that the critic is chosen and read under the same dropout mask.
     """
-    q_input = critic.q_input(observations, actions_pi)
-    if aggregation == "mean":
-        return critic.q_values_from_input(q_input).mean(dim=1, keepdim=True)
-    with th.no_grad():
-        q_values = critic.q_values_from_input(q_input)
-        index = selected_critic(q_values, aggregation)
-    assert index is not None
-    return critic.selected_q_values(q_input, index)
+    if critic.norm.dropout_rate > 0:
+        return actor_value_gathered(critic, observations, actions_pi, aggregation)
+
+    def value() -> th.Tensor:
+        q_input = critic.q_input(observations, actions_pi)
+        if aggregation == "mean":
+            return critic.q_values_from_input(q_input).mean(dim=1, keepdim=True)
+        with th.no_grad():
+            q_values = critic.q_values_from_input(q_input)
+            index = selected_critic(q_values, aggregation)
+        assert index is not None
+        return critic.selected_q_values(q_input, index)
+
+    return with_running_statistics(critic, value)
 
 
 def actor_value_gathered(
@@ -154,7 +198,7 @@ def actor_value_gathered(
     synchronise with the device and keep CUDA graphs from replaying the step): every critic runs with a graph, the
     selected one's value is gathered.
     """
-    q_values = critic.q_values(observations, actions_pi)
+    q_values = with_running_statistics(critic, lambda: critic.q_values(observations, actions_pi))
     if aggregation == "mean":
         return q_values.mean(dim=1, keepdim=True)
     index = selected_critic(q_values.detach(), aggregation)

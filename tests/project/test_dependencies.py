@@ -45,7 +45,7 @@ def distributions(modules: set[str]) -> set[str]:
 
 
 def test_the_library_depends_on_exactly_what_it_imports():
-    # So none of the study's (scipy, matplotlib, ray, PyYAML, sb3-contrib) is the library's
+    # So none of the study's (scipy, matplotlib, ray, PyYAML) is the library's
     assert declared("sb3-sera") == distributions(imported(ROOT / "sb3_sera"))
 
 

@@ -38,7 +38,7 @@ def masked_sac_update(
     states: Sequence[list[AdamState]],
     *,
     critic: nn.Module,
-    critic_target: nn.Module,
+    critic_target: nn.Module | None,
     tau: float,
     ent_coef: th.Tensor,
     ent_coef_loss: th.Tensor | None,
@@ -59,6 +59,7 @@ def masked_sac_update(
     :param plans: the actor's, the critics' and, where the coefficient is learned, the entropy coefficient's
     :param states: each plan's Adam state (:meth:`.AdamPlan.state`), in ``plans`` order
     :param critic: the online critics, whose parameters the target critics (``critic_target``) follow at rate ``tau``
+        (None: critics without targets)
     :param ent_coef_loss: None where the entropy coefficient is fixed
     :param actor_loss: computes the actor's loss, called after the critics' update
     :param learning_rates: each plan's rate, in ``plans`` order
@@ -92,7 +93,8 @@ def masked_sac_update(
     finite += [th.isfinite(loss), all_finite(actor_grads)]
     applied = apply & finite[-2] & finite[-1]
     masked_adam(actor_plan, actor_grads, states[0], [learning_rates[0]] * len(actor_plan.settings), applied)
-    masked_polyak(list(critic_target.parameters()), list(critic.parameters()), tau, applied & target_update)
+    if critic_target is not None:
+        masked_polyak(list(critic_target.parameters()), list(critic.parameters()), tau, applied & target_update)
     return SACUpdate(applied=applied, finite=th.stack(finite), actor_loss=loss)
 
 
