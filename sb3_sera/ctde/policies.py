@@ -9,8 +9,8 @@ import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.base_class import BaseAlgorithm, maybe_make_env
-from stable_baselines3.common.policies import ActorCriticPolicy, BasePolicy
-from stable_baselines3.common.preprocessing import get_flattened_obs_dim
+from stable_baselines3.common.policies import ActorCriticPolicy, BasePolicy, ContinuousCritic
+from stable_baselines3.common.preprocessing import get_action_dim, get_flattened_obs_dim
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, FlattenExtractor, create_mlp
 from stable_baselines3.common.type_aliases import GymEnv, PyTorchObs, Schedule
 from stable_baselines3.common.vec_env import VecEnv
@@ -21,6 +21,7 @@ from stable_baselines3.td3.policies import TD3Policy
 from torch import nn
 
 from sb3_sera.common.arguments import check_gymnasium_env
+from sb3_sera.common.normalization import CriticNorm
 from sb3_sera.common.training_flags import ActorCriticTrainingMode
 from sb3_sera.ctde.actors import CTDEActor, StackedCTDEActor, check_shareable
 from sb3_sera.ctde.env import STATE_KEY, CTDEEnv
@@ -214,15 +215,86 @@ def is_ctde_policy(policy_class: type) -> bool:
     return issubclass(policy_class, (CTDEPolicyMixin, MAPPOPolicy))
 
 
+class NormalizedContinuousCritic(ContinuousCritic):
+    """
+    SB3's ``ContinuousCritic`` whose Q-networks have dropout and LayerNorm after each hidden linear layer, before the
+    activation (DroQ's critics; :class:`~sb3_sera.common.normalization.CriticNorm`'s ``layer_norm`` and
+    ``dropout_rate``). Takes ``ContinuousCritic``'s arguments and ``norm``.
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Box,
+        net_arch: list[int],
+        features_extractor: BaseFeaturesExtractor,
+        features_dim: int,
+        activation_fn: type[nn.Module] = nn.ReLU,
+        normalize_images: bool = True,
+        n_critics: int = 2,
+        share_features_extractor: bool = True,
+        norm: CriticNorm | None = None,
+    ):
+        super().__init__(
+            observation_space,
+            action_space,
+            net_arch,
+            features_extractor,
+            features_dim,
+            activation_fn,
+            normalize_images,
+            n_critics,
+            share_features_extractor,
+        )
+        post_linear_modules = (norm or CriticNorm()).post_linear_modules
+        input_dim = features_dim + get_action_dim(action_space)
+        for idx in range(n_critics):
+            layers = create_mlp(input_dim, 1, net_arch, activation_fn, post_linear_modules=post_linear_modules)  # type: ignore[arg-type]
+            self.q_networks[idx] = nn.Sequential(*layers)
+            self.add_module(f"qf{idx}", self.q_networks[idx])
+
+
 class MASACPolicy(CTDEPolicyMixin, SACPolicy):  # type: ignore[misc]
     """
     SAC's policy for CTDE: per-agent squashed Gaussian actors, twin centralized critics on (state, joint action).
 
     Takes SB3's ``SACPolicy`` arguments (``net_arch``, ``n_critics``, ...) plus ``agent_action_dims`` (the agents, in
-    joint-action order, and their action sizes; filled by the algorithms) and ``share_actor`` (one actor for all).
+    joint-action order, and their action sizes; filled by the algorithms), ``share_actor`` (one actor for all), and
+    DroQ's critics as SERASAC takes them: ``layer_norm`` and ``dropout_rate`` (SBX's arguments). CrossQ's
+    (``batch_norm``) need critics without target networks, which SB3's SAC step does not have: a ``ValueError``
+    says how SERASAC trains MASAC's ensemble with them.
     """
 
     agent_actor_class = SACActor
+
+    def __init__(
+        self,
+        *args: Any,
+        layer_norm: bool = False,
+        dropout_rate: float = 0.0,
+        batch_norm: bool = False,
+        **kwargs: Any,
+    ):
+        if batch_norm is not False:
+            raise ValueError(
+                "MASAC's critics train with target networks (SB3's SAC step); batch_norm=True needs critics without "
+                "them. SERASAC trains MASAC's ensemble with CrossQ's critics: SERASAC('CTDEPolicy', env, policy_kwargs="
+                "dict(n_critics=2, net_arch=[256, 256], batch_norm=True), target_aggregation='min', "
+                "actor_aggregation='min', adaptive_critic_lr=False, disagreement_coef=0)"
+            )
+        self.critic_norm = CriticNorm(layer_norm=layer_norm, dropout_rate=dropout_rate).checked()
+        super().__init__(*args, **kwargs)
+
+    def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> ContinuousCritic:
+        if not self.critic_norm.post_linear_modules:
+            return super().make_critic(features_extractor)
+        critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
+        return NormalizedContinuousCritic(**critic_kwargs, norm=self.critic_norm).to(self.device)
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        data.update(layer_norm=self.critic_norm.layer_norm, dropout_rate=self.critic_norm.dropout_rate)
+        return data
 
 
 class MATD3Policy(CTDEPolicyMixin, TD3Policy):  # type: ignore[misc]

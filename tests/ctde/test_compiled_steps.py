@@ -180,3 +180,11 @@ def test_the_compiled_train_keeps_sb3s_default_batch_size(monkeypatch):
         monkeypatch.setattr(model, "_train_compiled", lambda steps, batch_size, calls=calls: calls.append((steps, batch_size)))
         model.train(2)
         assert calls == [(2, expected)]
+
+
+@pytest.mark.slow  # a step of its own (a minute of CI's cold cache); SERASAC's DroQ step is compiled in CI
+def test_masacs_droq_critics_compile_equal_to_the_eager_step():
+    critics = dict(layer_norm=True, dropout_rate=0.01)
+    build_droq = partial(build, policy_kwargs={**SETTINGS["policy_kwargs"], **critics})
+    _, compiled, _ = assert_compiled_equals_eager(build_droq, SETTINGS["batch_size"])
+    assert compiled.critic.qf0[2].normalized_shape == (16,)

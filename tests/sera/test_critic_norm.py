@@ -11,7 +11,7 @@ from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.utils import set_random_seed
 from torch import nn
 
-from sb3_sera import SERASAC
+from sb3_sera import MASAC, SERASAC
 from sb3_sera.common.normalization import BatchRenorm
 from sb3_sera.sera.aggregation import aggregate_target
 from tests.helpers import CTDE_TASK, ENV_ID, SMALL, SMALL_CTDE, assert_same_state, snapshot
@@ -135,3 +135,19 @@ def test_normalized_critics_train_a_multi_agent_task(critic_kwargs):
 def test_invalid_critic_norms_are_named(critic_kwargs, message):
     with pytest.raises(ValueError, match=message):
         build(critic_kwargs)
+
+
+def test_masac_takes_droqs_critics_and_saves_and_loads_them(tmp_path):
+    model = MASAC("CTDEPolicy", CTDE_TASK, seed=0, policy_kwargs=dict(net_arch=[16], **DROQ), **SMALL_CTDE)
+    assert [type(layer) for layer in model.critic.qf1] == [nn.Linear, nn.Dropout, nn.LayerNorm, nn.ReLU, nn.Linear]
+    assert [type(layer) for layer in model.critic_target.qf0] == [type(layer) for layer in model.critic.qf0]
+    model.learn(SMALL_CTDE["learning_starts"] + 10)
+    model.save(tmp_path / "model")
+    loaded = MASAC.load(tmp_path / "model")
+    assert loaded.policy.critic_norm == model.policy.critic_norm
+    assert_same_state(snapshot(model), snapshot(loaded))
+
+
+def test_masac_refuses_batch_norm_and_names_serasacs_equivalent():
+    with pytest.raises(ValueError, match=r"SERASAC\('CTDEPolicy', env, policy_kwargs=dict\(n_critics=2"):
+        MASAC("CTDEPolicy", CTDE_TASK, policy_kwargs=dict(batch_norm=True))
