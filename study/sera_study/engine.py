@@ -7,6 +7,7 @@ progress file, and its records written, ``result.json`` last to mark the run fin
 import copy
 import json
 import os
+import platform
 import socket
 import sys
 import time
@@ -168,12 +169,27 @@ RESUMES_FILE = ".resumes.json"
 ATTEMPTS_FILE = ".attempts.json"
 
 
+def cpu_model(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
+    """This machine's CPU model, as Linux names it in ``cpuinfo`` (else ``platform.processor()``, else "unknown")."""
+    try:
+        for line in cpuinfo.read_text().splitlines():
+            key, _, value = line.partition(":")
+            if key.strip() == "model name" and value.strip():
+                return value.strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
 def placement() -> dict[str, Any]:
     """
-    Where this process makes a run: the host, the GPUs it may use (``CUDA_VISIBLE_DEVICES``, where set) and, in a
-    Ray task, the node and the resources Ray gave it (a GPU's share with ``--gpus-per-run``).
+    Where this process makes a run: the host, its CPU model, the GPU torch sees (where there is one), the GPUs it may
+    use (``CUDA_VISIBLE_DEVICES``, where set) and, in a Ray task, the node and the resources Ray gave it (a GPU's
+    share with ``--gpus-per-run``).
     """
-    where: dict[str, Any] = {"host": socket.gethostname()}
+    where: dict[str, Any] = {"host": socket.gethostname(), "cpu": cpu_model()}
+    if th.cuda.is_available():
+        where["gpu"] = th.cuda.get_device_name()
     if "CUDA_VISIBLE_DEVICES" in os.environ:
         where["cuda_visible_devices"] = os.environ["CUDA_VISIBLE_DEVICES"]
     ray = sys.modules.get("ray")  # imported in a Ray worker; never imported here for a local run

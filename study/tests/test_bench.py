@@ -8,6 +8,7 @@ import pytest
 
 from sera_study import backends, bench
 from sera_study.cli import main
+from sera_study.engine import cpu_model
 from sera_study.report import PAPER_NAMES, PAPER_RESULTS
 from study.tests.helpers import tiny_grid
 from tests.helpers import ROOT
@@ -108,6 +109,9 @@ def test_grid_runs_and_resumes(tmp_path, capsys, monkeypatch):
     kept = out / "serasac" / "Pendulum-v1_1" / "result.json"
     redone = out / "ensemble_mean" / "Pendulum-v1_1" / "result.json"
     stamp = kept.stat().st_mtime_ns
+    # Each start records where it ran: the host and this machine's CPU model
+    (attempt,) = json.loads(kept.read_text())["attempts"]
+    assert attempt["cpu"] == cpu_model() != "unknown" and attempt["host"]
     # An interrupted grid: one run never finished (no result.json); running the grid again does only that one, in its
     # own folder
     redone.unlink()
@@ -153,3 +157,11 @@ def test_a_variant_on_a_task_of_the_other_kind_is_refused_before_any_run(tmp_pat
     )
     with pytest.raises(ValueError, match="variant sunrise is single-agent only: train it on a Gymnasium task"):
         bench.load_grid(write(tmp_path, grid))
+
+
+def test_the_cpu_model_is_read_from_cpuinfo(tmp_path):
+    cpuinfo = tmp_path / "cpuinfo"
+    cpuinfo.write_text("processor\t: 0\nvendor_id\t: AuthenticAMD\nmodel name\t: AMD EPYC 9B14\n\nprocessor\t: 1\n")
+    assert cpu_model(cpuinfo) == "AMD EPYC 9B14"
+    cpuinfo.write_text("processor\t: 0\n")
+    assert cpu_model(cpuinfo) == cpu_model(tmp_path / "absent")
