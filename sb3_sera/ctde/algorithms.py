@@ -46,11 +46,15 @@ from sb3_sera.ctde.policies import MAPPOPolicy, MASACPolicy, MATD3Policy, fill_a
 
 
 def _sb3_algorithm(algorithm_class: type[BaseAlgorithm]) -> type[BaseAlgorithm]:
-    """The SB3 algorithm a CTDE algorithm is (SAC for MASAC and IET, TD3, DDPG, PPO)."""
+    """
+    The SB3-family algorithm a CTDE algorithm is built on (SAC for MASAC and IET, TD3, DDPG, PPO; sb3-contrib's, such
+    as TQC, for one built on it): the first of its bases from SB3 or sb3-contrib.
+    """
     return next(
         base
         for base in algorithm_class.__mro__
-        if base.__module__.startswith("stable_baselines3.") and issubclass(base, (OffPolicyAlgorithm, OnPolicyAlgorithm))
+        if base.__module__.startswith(("stable_baselines3.", "sb3_contrib."))
+        and issubclass(base, (OffPolicyAlgorithm, OnPolicyAlgorithm))
     )
 
 

@@ -1,6 +1,7 @@
 """The CTDE policies and algorithms: decentralized actors, centralized critics, training, save/load, execution."""
 
 import copy
+import inspect
 import json
 from pathlib import Path
 
@@ -8,8 +9,10 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch as th
+from sb3_contrib import TQC
 
 from sb3_sera import MADDPG, MAPPO, MASAC, MATD3, SERASAC
+from sb3_sera.ctde.algorithms import _CTDEAlgorithm, _sb3_algorithm, _sb3_train_signature
 from sb3_sera.ctde.env import STATE_KEY
 from sb3_sera.ctde.execution import DecentralizedActors
 from tests.helpers import SMALL_CTDE
@@ -202,3 +205,19 @@ def test_ctde_policy_needs_a_ctde_env():
 def test_controllers_need_a_ctde_model():
     with pytest.raises(TypeError, match="not trained with a CTDE policy"):
         DecentralizedActors.from_model(SERASAC("MlpPolicy", "Pendulum-v1", **SMALL_CTDE))
+
+
+class _CTDETQC(_CTDEAlgorithm, TQC):
+    """A CTDE algorithm built on sb3-contrib's TQC, as a user would write one."""
+
+    def _loss_optimizers(self) -> dict[str, th.optim.Optimizer]:
+        return {"critic": self.critic.optimizer, "actor": self.actor.optimizer}
+
+
+def test_a_ctde_algorithm_on_sb3_contribs_tqc_takes_tqcs_arguments_and_train():
+    # Once only bases from stable_baselines3 were found: such an algorithm took OffPolicyAlgorithm's signatures
+    assert _sb3_algorithm(_CTDETQC) is TQC
+    assert _sb3_train_signature(_CTDETQC) == inspect.signature(TQC.train)
+    model = _CTDETQC("MlpPolicy", "Pendulum-v1", top_quantiles_to_drop_per_net=3, learning_starts=50, batch_size=16)
+    model.learn(60)
+    assert model.top_quantiles_to_drop_per_net == 3 and model._n_updates == 10
