@@ -48,6 +48,10 @@ SMALL_NETWORKS = {
     "sunrise": "dict(net_arch=[32, 32])",
     "ace": "dict(feature_dim=32, hidden=16, n_actors=3)",
     "mappo": "dict(net_arch=[32, 32])",
+    "tqc": "dict(net_arch=[32, 32], n_quantiles=5)",
+    "crossq": "dict(net_arch=[32, 32])",
+    # SERASAC with CrossQ's critics: batch renormalization's running statistics and step counts, no target critics
+    "serasac_crossq": "dict(net_arch=[32, 32], critic_archs=[[32, 32], [32], [48]], n_critics=3, batch_norm=True)",
 }
 #: The rest of each algorithm's small settings: an off-policy run starts learning at step 100, MAPPO's rollouts of 64
 #: steps end past the 400-step budget (at 448), which the run stops at
@@ -79,20 +83,24 @@ def test_the_last_checkpoint_before_a_kill_by_hand(stop, rollout, expected):
 
 
 @pytest.mark.parametrize(
-    ("algo", "env_id"),
+    ("variant", "env_id"),
     [
         ("serasac", "Pendulum-v1"),
+        ("serasac_crossq", "Pendulum-v1"),
         ("masac", CTDE_TASK),
         ("iet", CTDE_TASK),
         ("sunrise", "Pendulum-v1"),
         ("ace", "Pendulum-v1"),
         ("mappo", CTDE_TASK),
+        ("tqc", "Pendulum-v1"),
+        ("crossq", "Pendulum-v1"),
     ],
 )
-def test_an_interrupted_run_resumes_to_the_same_final_parameters(tmp_path, monkeypatch, algo, env_id):
+def test_an_interrupted_run_resumes_to_the_same_final_parameters(tmp_path, monkeypatch, variant, env_id):
+    algo = variant.split("_")[0]
     replay = {} if algo in ROLLOUT else {"learning_starts": 100, "batch_size": 32, "buffer_size": 2000}
-    overrides = {**replay, **SMALL_SETTINGS.get(algo, {}), "policy_kwargs": SMALL_NETWORKS[algo]}
-    spec = make_spec(algo, algo, env_id, seed=0, n_timesteps=400, overrides=overrides, eval_freq=150, n_eval_episodes=1)
+    overrides = {**replay, **SMALL_SETTINGS.get(algo, {}), "policy_kwargs": SMALL_NETWORKS[variant]}
+    spec = make_spec(variant, algo, env_id, seed=0, n_timesteps=400, overrides=overrides, eval_freq=150, n_eval_episodes=1)
     spec.device = "cpu"
     # Uninterrupted, without checkpoints
     whole = copy.deepcopy(spec)
