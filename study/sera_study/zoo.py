@@ -7,6 +7,7 @@ interrupted train (``_CheckpointedTrain``).
 """
 
 import json
+import os
 import runpy
 import shutil
 import sys
@@ -21,6 +22,7 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from sb3_sera.common.capabilities import capabilities
 from sb3_sera.common.evaluation import InitialStateBiasCallback
 from sb3_sera.zoo import register
+from sera_study.backends import default_threads
 from sera_study.defaults import ZOO_COMMANDS
 from sera_study.registry import (
     HYPERPARAMS_DIR,
@@ -94,7 +96,7 @@ def zoo_argv(command: str, argv: Sequence[str]) -> list[str]:
     """
     The zoo's arguments for ``command``: ``optimize`` is ``train -optimize``, and ``train``/``optimize`` read the
     package's ``hyperparams/<algo>.yml`` where it has the task (``registry.hyperparams_file``) unless ``--conf-file``
-    is given.
+    is given, with one torch thread (``OMP_NUM_THREADS`` where set) unless ``--num-threads`` is given.
     """
     args = list(argv)
     if command not in ZOO_COMMANDS:
@@ -102,6 +104,10 @@ def zoo_argv(command: str, argv: Sequence[str]) -> list[str]:
     if command == "optimize" and "-optimize" not in args and "--optimize-hyperparameters" not in args:
         args.append("-optimize")
     if command in ("train", "optimize"):
+        if _flag_value(args, "--num-threads") is None:
+            # One torch thread, as compare and bench give each run when runs fill the cores (OMP_NUM_THREADS wins):
+            # torch's default, a thread per core, crawls beside other work (docs/guide/install.md, Threads)
+            args += ["--num-threads", str(default_threads(os.cpu_count() or 1))]
         algo = _flag_value(args, "--algo") or "ppo"
         env_id = _flag_value(args, "--env")
         check_algo_task(algo, env_id)

@@ -77,12 +77,13 @@ def test_zoo_tables_and_arguments():
         assert utils.ALGOS[algo] is ZOO_ALGOS[algo]
         assert algo in hyperparams_opt.HYPERPARAMS_SAMPLER and algo in hyperparams_opt.HYPERPARAMS_CONVERTER
     assert zoo_argv("train", ["--algo", "masac"])[-2:] == ["--conf-file", str(HYPERPARAMS_DIR / "masac.yml")]
-    assert zoo_argv("train", ["--algo", "masac", "-conf", "mine.yml"]) == ["--algo", "masac", "-conf", "mine.yml"]
+    mine = ["--algo", "masac", "-conf", "mine.yml"]
+    assert zoo_argv("train", mine) == [*mine, "--num-threads", "1"]
     assert "-optimize" in zoo_argv("optimize", ["--algo", "serasac"])
     # Stock SAC reads the package's sac.yml on the tasks it names, rl-zoo3's own file on the others
     sac = ["--algo", "sac", "--env"]
     assert zoo_argv("train", [*sac, "HalfCheetah-v5"])[-1] == str(HYPERPARAMS_DIR / "sac.yml")
-    assert zoo_argv("train", [*sac, "Pendulum-v1"]) == [*sac, "Pendulum-v1"]
+    assert zoo_argv("train", [*sac, "Pendulum-v1"]) == [*sac, "Pendulum-v1", "--num-threads", "1"]
     # So do sb3-contrib's TQC and CrossQ: the zoo's HalfCheetah-v4 settings for v5 (CrossQ's critics 1024 wide)
     for algo in ("tqc", "crossq"):
         assert zoo_argv("train", ["--algo", algo, "--env", "HalfCheetah-v5"])[-1] == str(HYPERPARAMS_DIR / f"{algo}.yml")
@@ -93,6 +94,18 @@ def test_zoo_tables_and_arguments():
     assert default_hyperparams("tqc", "Hopper-v4")[1] == "rl_zoo3/hyperparams/tqc.yml:Hopper-v4"
     with pytest.raises(ValueError, match="Unknown zoo command 'fly'"):
         zoo_argv("fly", [])
+
+
+def test_train_and_optimize_take_one_torch_thread_unless_told(monkeypatch):
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    for command in ("train", "optimize"):
+        args = zoo_argv(command, ["--algo", "serasac", "--env", "Pendulum-v1"])
+        assert args[args.index("--num-threads") + 1] == "1"
+    assert zoo_argv("train", ["--algo", "sac", "--num-threads", "4"]).count("--num-threads") == 1
+    assert "--num-threads" not in zoo_argv("enjoy", ["--algo", "sac"])
+    monkeypatch.setenv("OMP_NUM_THREADS", "3")
+    args = zoo_argv("train", ["--algo", "sac"])
+    assert args[args.index("--num-threads") + 1] == "3"
 
 
 def test_enjoy_and_record_video_load_off_policy_models_with_a_one_transition_buffer(tmp_path):
