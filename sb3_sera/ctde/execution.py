@@ -23,6 +23,7 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.preprocessing import get_flattened_obs_dim
 from stable_baselines3.common.torch_layers import FlattenExtractor
 from stable_baselines3.sac.policies import Actor as SACActor
 from stable_baselines3.td3.policies import Actor as TD3Actor
@@ -216,11 +217,29 @@ class DecentralizedActors:
             own = np.asarray(observation, dtype=np.float32).reshape(-1)
             if agent in self.latents:
                 own = np.concatenate([own, self.latents[agent]])
+            self._check_size(agent, actor, own.size, self.latents[agent].size if agent in self.latents else 0)
             obs = th.as_tensor(own).reshape(1, -1)
             action = actor._predict(obs, deterministic=deterministic).cpu().numpy().reshape(space.shape)
         if actor.squash_output:
             return (space.low + 0.5 * (action + 1.0) * (space.high - space.low)).astype(space.dtype)
         return np.clip(action, space.low, space.high).astype(space.dtype)
+
+    @staticmethod
+    def _check_size(agent: str, actor: BasePolicy, size: int, latent_size: int) -> None:
+        """
+        ``ValueError`` naming both sizes where ``agent``'s observation is not the size its actor was trained on
+        (``size`` and the actor's input both count the agent's latent, ``latent_size`` values, where it has one).
+        """
+        trained = get_flattened_obs_dim(actor.observation_space)
+        if size == trained:
+            return
+        raise ValueError(
+            f"Agent {agent!r} gave an observation of {size - latent_size} values, but its actor was trained on "
+            f"{trained - latent_size}. An actor "
+            "shared by agents (share_actor=True) reads observations padded to one size with a one-hot agent indicator "
+            "appended (agent_indicator=True); give the controllers the env wrapped as in training: "
+            "sb3_sera.ctde.env.with_agent_indicator(parallel_env)"
+        )
 
     def __call__(self, observations: Mapping[str, np.ndarray], deterministic: bool = True) -> dict[str, np.ndarray]:
         """

@@ -13,8 +13,9 @@ from sb3_contrib import TQC
 
 from sb3_sera import MADDPG, MAPPO, MASAC, MATD3, SERASAC
 from sb3_sera.ctde.algorithms import _CTDEAlgorithm, _sb3_algorithm, _sb3_train_signature
-from sb3_sera.ctde.env import STATE_KEY
+from sb3_sera.ctde.env import STATE_KEY, with_agent_indicator
 from sb3_sera.ctde.execution import DecentralizedActors
+from sb3_sera.ctde.tasks import mamujoco_parallel_env
 from tests.helpers import SMALL_CTDE
 
 ALGORITHMS = {
@@ -221,3 +222,18 @@ def test_a_ctde_algorithm_on_sb3_contribs_tqc_takes_tqcs_arguments_and_train():
     model = _CTDETQC("MlpPolicy", "Pendulum-v1", top_quantiles_to_drop_per_net=3, learning_starts=50, batch_size=16)
     model.learn(60)
     assert model.top_quantiles_to_drop_per_net == 3 and model._n_updates == 10
+
+
+def test_a_shared_actor_deploys_on_the_env_wrapped_as_in_training_and_names_a_mismatch():
+    env = gym.make("sb3_sera/HalfCheetah-6x1-v0", agent_indicator=True)
+    model = MASAC("CTDEPolicy", env, seed=0, policy_kwargs=dict(share_actor=True, net_arch=[16]), **SMALL_CTDE)
+    controllers = DecentralizedActors.from_model(model.learn(60))
+    raw = mamujoco_parallel_env("HalfCheetah", "6x1")
+    observations, _ = with_agent_indicator(raw).reset(seed=0)
+    actions = controllers(observations)
+    assert all(raw.action_space(agent).contains(action) for agent, action in actions.items())
+    # On the raw env the shared actor (trained on 9 values and 6 indicators) is given 8 or 9 values: named, not a
+    # shape error deep in torch
+    observations, _ = raw.reset(seed=0)
+    with pytest.raises(ValueError, match=r"observation of 9 values, but its actor was trained on 15\. .*with_agent_ind"):
+        controllers(observations)
