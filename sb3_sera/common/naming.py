@@ -1,18 +1,25 @@
 """
 What every algorithm of the package shares with SB3's own: its TensorBoard runs are named after it; and what it adds:
-a warning when ``learn`` would end before the first gradient step, an error for a negative budget, and a warning
-(once a process) when torch's threads outnumber the cores the process may run on.
+a warning when ``learn`` would end before the first gradient step, an error for a negative budget, a warning (once a
+process) when torch's threads outnumber the cores the process may run on, and loads that say in one line why a file
+does not fit (:mod:`sb3_sera.common.loading`).
 """
 
+import io
 import os
+import pathlib
 import warnings
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import torch as th
 from stable_baselines3.common.base_class import BaseAlgorithm
-from stable_baselines3.common.type_aliases import MaybeCallback
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback
+
+from sb3_sera.common.loading import foreign_file_reason, other_networks_reason
 
 SelfNamedRuns = TypeVar("SelfNamedRuns", bound="NamedRuns")
+#: What SB3's ``load`` and ``set_parameters`` read a model from
+LoadPath = str | pathlib.Path | io.BufferedIOBase
 
 #: Whether this process was warned that torch's threads outnumber its cores
 _warned_threads = False
@@ -44,8 +51,50 @@ class NamedRuns(BaseAlgorithm):
     First in an algorithm's bases: ``learn``'s TensorBoard run is named after the algorithm's class (``SERASAC_1``,
     ``IET_1``, ...), as each SB3 algorithm writes out its own name as ``tb_log_name``'s default. An off-policy
     algorithm whose ``learning_starts`` lies at or beyond the end of the call warns, with the numbers: such a call
-    trains nothing (``sb3-sera train -n 600`` with a MuJoCo entry's ``learning_starts: 10000``).
+    trains nothing (``sb3-sera train -n 600`` with a MuJoCo entry's ``learning_starts: 10000``). ``load`` of another
+    algorithm's file, and ``set_parameters`` of a file saved with other networks, raise ``ValueError`` saying so.
     """
+
+    @classmethod
+    def load(
+        cls: type[SelfNamedRuns],
+        path: LoadPath,
+        env: GymEnv | None = None,
+        device: th.device | str = "auto",
+        custom_objects: dict[str, Any] | None = None,
+        print_system_info: bool = False,
+        force_reset: bool = True,
+        **kwargs: Any,
+    ) -> SelfNamedRuns:
+        """
+        SB3's ``load``.
+
+        :raises ValueError: for a file of another algorithm (SB3's own error names an optimizer's key), naming its policy
+        """
+        try:
+            return super().load(path, env, device, custom_objects, print_system_info, force_reset, **kwargs)
+        except (KeyError, RuntimeError) as error:
+            reason = foreign_file_reason(cls, path)
+            if reason is None:
+                raise
+            raise ValueError(reason) from error
+
+    def set_parameters(
+        self, load_path_or_dict: str | dict[str, th.Tensor], exact_match: bool = True, device: th.device | str = "auto"
+    ) -> None:
+        """
+        SB3's ``set_parameters``.
+
+        :raises ValueError: for a file whose networks differ from this model's (another ensemble size, other layers, or
+            another algorithm), naming the ``policy_kwargs`` of both
+        """
+        try:
+            super().set_parameters(load_path_or_dict, exact_match, device)
+        except (KeyError, RuntimeError) as error:
+            reason = None if isinstance(load_path_or_dict, dict) else other_networks_reason(self, load_path_or_dict)
+            if reason is None:
+                raise
+            raise ValueError(reason) from error
 
     def learn(
         self: SelfNamedRuns,

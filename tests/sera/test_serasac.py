@@ -436,3 +436,15 @@ def test_trains_with_hindsight_experience_replay_on_a_goal_env_and_goes_on_after
     assert isinstance(loaded.replay_buffer, HerReplayBuffer)
     loaded.learn(30, reset_num_timesteps=False)
     assert loaded.num_timesteps == 180
+
+
+def test_a_file_of_another_algorithm_or_ensemble_is_named_in_one_line(tmp_path):
+    SAC("MlpPolicy", ENV_ID, buffer_size=100).save(tmp_path / "sac")
+    # SB3's own error was KeyError: 'policy.optimizer'
+    with pytest.raises(ValueError, match=r"holds a model of another algorithm: its policy is stable_baselines3\.sac"):
+        SERASAC.load(tmp_path / "sac")
+    SERASAC("MlpPolicy", ENV_ID, policy_kwargs=dict(n_critics=3), buffer_size=100).save(tmp_path / "three")
+    # torch's own listed every missing weight of critics 3 and 4
+    with pytest.raises(ValueError, match=r"built with policy_kwargs=\{'n_critics': 3\}, where this model has policy_kwargs"):
+        SERASAC("MlpPolicy", ENV_ID, buffer_size=100).set_parameters(str(tmp_path / "three.zip"))
+    assert SERASAC.load(tmp_path / "three").critic.n_critics == 3
