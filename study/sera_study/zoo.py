@@ -22,7 +22,6 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from sb3_sera.common.capabilities import capabilities
 from sb3_sera.common.evaluation import InitialStateBiasCallback
 from sb3_sera.zoo import register
-from sera_study.backends import default_threads
 from sera_study.defaults import ZOO_COMMANDS
 from sera_study.registry import (
     HYPERPARAMS_DIR,
@@ -107,7 +106,8 @@ def zoo_argv(command: str, argv: Sequence[str]) -> list[str]:
         if _flag_value(args, "--num-threads") is None:
             # One torch thread, as compare and bench give each run when runs fill the cores (OMP_NUM_THREADS wins):
             # torch's default, a thread per core, crawls beside other work (docs/guide/install.md, Threads)
-            args += ["--num-threads", str(default_threads(os.cpu_count() or 1))]
+            from_env = os.environ.get("OMP_NUM_THREADS", "")
+            args += ["--num-threads", from_env if from_env.isdigit() and int(from_env) > 0 else "1"]
         algo = _flag_value(args, "--algo") or "ppo"
         env_id = _flag_value(args, "--env")
         check_algo_task(algo, env_id)
