@@ -159,20 +159,31 @@ def reading(results: Sequence[RunResult], algos: Sequence[str]) -> str:
     evaluation against its final return), what runs this many can decide, and how to get a comparison that can.
     """
     by_algo = {algo: [r for r in results if r.variant == algo] for algo in algos}
-    learned = []
-    #: Whether each algorithm's mean final return is above its mean first evaluation (absent: no evaluation)
+    learned, too_few = [], []
+    #: Whether each algorithm's mean final return is above its mean first evaluation (absent: no evaluation, or too
+    #: few after learning starts to tell)
     improved: dict[str, bool] = {}
     for algo, runs in by_algo.items():
         firsts = [(run.timesteps[0], run.returns[0]) for run in runs if run.timesteps]
-        if firsts:
-            start = sum(value for _, value in firsts) / len(firsts)
-            final = sum(run.final_return for run in runs) / len(runs)
-            improved[algo] = final > start
-            flat = "" if improved[algo] else " (no better than its first evaluation)"
-            learned.append(f"{algo} {start:.0f} at step {firsts[0][0]:,} -> {final:.0f}{flat}")
+        if not firsts:
+            continue
+        if min(len(_trained_returns(run)) for run in runs) < FINAL_EVALUATIONS:
+            too_few.append(algo)
+            continue
+        start = sum(value for _, value in firsts) / len(firsts)
+        final = sum(run.final_return for run in runs) / len(runs)
+        improved[algo] = final > start
+        flat = "" if improved[algo] else " (no better than its first evaluation)"
+        learned.append(f"{algo} {start:.0f} at step {firsts[0][0]:,} -> {final:.0f}{flat}")
     lines = ["What it means:"]
     if learned:
         lines.append(f"  Learning (mean evaluation return, first -> final): {'; '.join(learned)}.")
+    if too_few:
+        which = "it trains" if len(too_few) == 1 else "they train"
+        lines.append(
+            f"  {' and '.join(too_few)}: too few evaluations after learning starts to tell whether {which} (the final "
+            f"return needs {FINAL_EVALUATIONS} after learning_starts): a longer run, or evaluations more often (--eval-freq)."
+        )
     first, *others = algos
     needed = runs_to_decide()
     budget = max((r.n_timesteps for r in results), default=0)
@@ -200,6 +211,12 @@ def reading(results: Sequence[RunResult], algos: Sequence[str]) -> str:
                 f"{elsewhere}."
             )
     return "\n".join(lines)
+
+
+def _trained_returns(run: RunResult) -> list[float]:
+    """A run's evaluation returns after its learning starts (every one for an on-policy run, which has no such step)."""
+    starts = int(run.hyperparams.get("learning_starts", 0) or 0)
+    return [value for step, value in zip(run.timesteps, run.returns, strict=True) if step > starts]
 
 
 def _what_they_show(improved: dict[str, bool], algos: Sequence[str]) -> str:

@@ -276,7 +276,8 @@ def test_the_summary_gives_the_difference_its_interval_and_a_decision_only_where
 def test_the_reading_says_what_the_runs_can_decide_and_where_a_real_comparison_is():
     results = _results({"serasac": [-200.0, -180.0], "sac": [-300.0, -250.0]})
     for result in results:
-        result.timesteps, result.returns = [1000, 6000], [-1200.0, result.final_return]
+        result.timesteps, result.returns = [1000, 2000, 4000, 6000], [-1200.0, *[result.final_return] * 3]
+        result.hyperparams["learning_starts"] = 1000
     text = compare.reading(results, ["serasac", "sac"])
     assert "Learning (mean evaluation return, first -> final): serasac -1200 at step 1,000 -> -190; sac -1200" in text
     # 2 runs a side: the smallest p is 1/3; 4 a side (2 of 70 splits: 0.029) is the fewest that can decide
@@ -285,13 +286,20 @@ def test_the_reading_says_what_the_runs_can_decide_and_where_a_real_comparison_i
     assert "each ended above its first evaluation, so these runs show that each trains" in text
     # A run that did not improve says so: the README's small HalfCheetah comparison (-1 -> -9 and -3 -> -7)
     for result, first in zip(results, [-1.0, -1.0, -3.0, -3.0], strict=True):
-        result.returns = [first, -9.0 if result.variant == "serasac" else -7.0]
+        result.returns = [first, *[-9.0 if result.variant == "serasac" else -7.0] * 3]
     for result in results:
         result.final_return = result.returns[-1]
     text = compare.reading(results, ["serasac", "sac"])
     assert "serasac -1 at step 1,000 -> -9 (no better than its first evaluation); sac -3" in text
     assert "serasac and sac ended no better than their first evaluation, so these runs show no learning" in text
     assert "each trains" not in text
+    # Three evaluations, the first at learning_starts (before any gradient step): the last three are not three of
+    # training, so nothing is said of learning (once: "each trains" of -24.85 -> -24.64)
+    for result in results:
+        result.timesteps, result.returns = [1000, 2000, 3000], [-24.85, -24.7, -24.64]
+    text = compare.reading(results, ["serasac", "sac"])
+    assert "serasac and sac: too few evaluations after learning starts to tell whether they train" in text
+    assert "Learning (" not in text and "each trains" not in text
     finals = {"serasac": [-200.0 + i for i in range(6)], "sac": [-260.0 + 3 * i for i in range(6)]}
     assert "serasac ahead of sac on this task at 6,000 steps (p 0.00216)" in compare.reading(
         _results(finals), ["serasac", "sac"]
