@@ -84,7 +84,11 @@ class CTDEEnv(gym.Env):
                     "agent (MPE: pass continuous_actions=True)"
                 )
             if not isinstance(obs_space, spaces.Box):
-                raise TypeError(f"Agent {agent!r} has observation space {obs_space}: CTDEEnv needs Box observations")
+                raise TypeError(
+                    f"Agent {agent!r} has observation space {obs_space}: CTDEEnv needs Box observations. Flatten the "
+                    "agents' observations first, e.g. with gymnasium.spaces.flatten_space and gymnasium.spaces.flatten "
+                    "in a pettingzoo.utils.BaseParallelWrapper (a Dict becomes one Box of its entries, key by key)"
+                )
             observation_spaces[agent] = _float32_box(obs_space)
             action_spaces[agent] = act_space
         self.agent_observation_spaces = observation_spaces

@@ -228,15 +228,14 @@ def has_checkpoint(folder: Path) -> bool:
 
 def checkpoint_stamp(folder: Path) -> str | None:
     """
-    ``folder``'s whole checkpoint as a person reads it, "step 1,000 of 2026-11-27 07:02 UTC" (None: none). The date is
-    when it was written.
+    ``folder``'s whole checkpoint as a person reads it, "step 1,000, written 2026-11-27 07:02 UTC" (None: none).
     """
     source = checkpoint_dir(folder)
     if source is None:
         return None
     step = _recorded_step(source)
     written = datetime.fromtimestamp((source / "state.pkl").stat().st_mtime, timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-    return f"{'an unrecorded step' if step is None else f'step {step:,}'} of {written}"
+    return f"{'an unrecorded step' if step is None else f'step {step:,}'}, written {written}"
 
 
 def checkpoint_step(folder: Path) -> int | None:

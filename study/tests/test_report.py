@@ -226,6 +226,16 @@ def test_panels_without_a_value_or_with_saturated_correlations_are_named_not_dra
     assert "(sb3_sera-HalfCheetah-6x1-v0_3000_correlations.png)" in report  # the TD errors' row is drawn
 
 
+def test_variants_whose_runs_kept_no_diagnostics_are_named_beside_the_figure(tmp_path):
+    root = tmp_path / "runs"
+    for seed in (0, 1):
+        fake_run(root, "serasac", seed + 1, seed, [0.0, 1.0, 2.0], n_critics=3)
+        fake_run(root, "matd3", seed + 1, seed, [0.0, 1.0, 2.0], algo="matd3")
+    report = report_roots([root], tmp_path / "report", reps=REPS).read_text()
+    # Once MATD3 was missing from the figure with no word why
+    assert "Not drawn, with no critic diagnostics in any run: matd3 (they are recorded for the algorithms built on" in report
+
+
 def test_report_refuses_to_overwrite_and_needs_runs(tmp_path, capsys):
     fake_run(tmp_path / "runs", "serasac", 1, 0, [0.0, 1.0, 2.0])
     main(["report", str(tmp_path / "runs"), "--out", str(tmp_path / "out"), "--reps", str(REPS)])

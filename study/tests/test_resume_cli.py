@@ -93,7 +93,7 @@ def test_a_run_interrupted_by_ctrl_c_resumes_from_the_command_line_to_the_uninte
     assert "the same command resumes serasac seed 0" in (b / STOPPED_LOG).read_text()
     said = finish(compare(task, episode, resumed, EVERY))
     (resume,) = load_result(b).resumes
-    assert f"{b}: stopped; its last checkpoint is at step {resume['from_step']:,} of 20" in said
+    assert f"{b}: stopped; its last checkpoint is at step {resume['from_step']:,}, written 20" in said
     assert f"{b}: resumed from step {resume['from_step']:,}" in said
     assert resume["from_step"] >= 2 * EVERY
     assert assert_same_end(a, b, f"{task.replace('/', '-')}.zip") >= STEPS // episode - 1

@@ -12,6 +12,7 @@ from gymnasium import spaces
 from gymnasium.utils.env_checker import check_env as gym_check_env
 from gymnasium.utils.env_checker import data_equivalence
 from pettingzoo.test import parallel_api_test, parallel_seed_test
+from pettingzoo.utils import BaseParallelWrapper
 from pettingzoo.utils.env import ParallelEnv
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
@@ -336,3 +337,46 @@ def test_rewards_of_opposite_signs_are_said_once_to_make_a_team_reward_of_a_comp
         warnings.simplefilter("error")
         assert env.team_reward({"adversary_0": -2.0, "agent_0": 1.0}) == -0.5  # said once
         assert env.team_reward({"agent_0": -1.0, "agent_1": -3.0}) == -2.0  # one sign: a cooperative team's spread
+
+
+class DictPoints(TwoPoints):
+    """TwoPoints whose agents observe a Dict: their position under one key."""
+
+    def observation_space(self, agent):
+        return spaces.Dict({"position": super().observation_space(agent)})
+
+    def reset(self, seed=None, options=None):
+        observations, infos = super().reset(seed, options)
+        return {agent: {"position": value} for agent, value in observations.items()}, infos
+
+    def step(self, actions):
+        observations, *rest = super().step(actions)
+        return {agent: {"position": value} for agent, value in observations.items()}, *rest
+
+
+class Flattened(BaseParallelWrapper):
+    """The way the refusal names: each agent's observation flattened with Gymnasium's own functions."""
+
+    def observation_space(self, agent):
+        return spaces.flatten_space(self.env.observation_space(agent))
+
+    def _flat(self, observations):
+        return {agent: spaces.flatten(self.env.observation_space(agent), value) for agent, value in observations.items()}
+
+    def reset(self, seed=None, options=None):
+        observations, infos = self.env.reset(seed=seed, options=options)
+        return self._flat(observations), infos
+
+    def step(self, actions):
+        observations, *rest = self.env.step(actions)
+        return self._flat(observations), *rest
+
+
+def test_dict_observations_are_refused_with_the_way_to_flatten_them():
+    with pytest.raises(
+        TypeError, match=r"Dict\(.*needs Box observations\. Flatten .*gymnasium\.spaces\.flatten_space"
+    ):
+        CTDEEnv(DictPoints())
+    env = CTDEEnv(Flattened(DictPoints()), reward_mode="sum")
+    observation, _ = env.reset(seed=0)
+    np.testing.assert_array_equal(observation["a"], [1.0, 2.0])

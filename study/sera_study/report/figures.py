@@ -202,8 +202,8 @@ def plot_diagnostics(groups: Sequence[RunGroup], path: Path, colors: dict[str, A
     per group; per-critic learning rates summarized by their mean (line and band) and their smallest and largest
     (dotted). A quantity without any value gets no panel.
 
-    :return: None where no group had diagnostics (no figure); else a sentence naming the quantities not drawn and
-        why ("" where all were drawn)
+    :return: None where no group had diagnostics (no figure); else a sentence naming the quantities not drawn and the
+        variants without diagnostics, and why ("" where all were drawn)
     """
     records = {id(group): [d for d in map(load_diagnostics, group.runs) if d is not None] for group in groups}
     if not any(records.values()):
@@ -211,6 +211,12 @@ def plot_diagnostics(groups: Sequence[RunGroup], path: Path, colors: dict[str, A
     panels = [panel for panel in DIAGNOSTIC_PANELS if any(_finite_series(runs, panel[0]) for runs in records.values())]
     left_out = [f"{panel[1]}, {_empty_reason(panel[0], records)}" for panel in DIAGNOSTIC_PANELS if panel not in panels]
     not_drawn = f"Critic diagnostics not drawn: {'; '.join(left_out)}." if left_out else ""
+    without = sorted({group.variant for group in groups if not records[id(group)]})
+    if without:
+        not_drawn = (
+            f"{not_drawn} Not drawn, with no critic diagnostics in any run: {', '.join(without)} (they are recorded for "
+            "the algorithms built on SB3's SAC, SAC, SERASAC, MASAC and IET, whose soft Q critics they read)."
+        ).strip()
     if not panels:
         path.unlink(missing_ok=True)  # a report written over an older one keeps no stale figure
         return not_drawn
