@@ -10,7 +10,7 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.base_class import BaseAlgorithm, maybe_make_env
 from stable_baselines3.common.policies import ActorCriticPolicy, BasePolicy, ContinuousCritic
-from stable_baselines3.common.preprocessing import get_action_dim, get_flattened_obs_dim
+from stable_baselines3.common.preprocessing import get_flattened_obs_dim
 from stable_baselines3.common.torch_layers import BaseFeaturesExtractor, FlattenExtractor, create_mlp
 from stable_baselines3.common.type_aliases import GymEnv, PyTorchObs, Schedule
 from stable_baselines3.common.vec_env import VecEnv
@@ -215,45 +215,6 @@ def is_ctde_policy(policy_class: type) -> bool:
     return issubclass(policy_class, (CTDEPolicyMixin, MAPPOPolicy))
 
 
-class NormalizedContinuousCritic(ContinuousCritic):
-    """
-    SB3's ``ContinuousCritic`` whose Q-networks have dropout and LayerNorm after each hidden linear layer, before the
-    activation (DroQ's critics; :class:`~sb3_sera.common.normalization.CriticNorm`'s ``layer_norm`` and
-    ``dropout_rate``). Takes ``ContinuousCritic``'s arguments and ``norm``.
-    """
-
-    def __init__(
-        self,
-        observation_space: spaces.Space,
-        action_space: spaces.Box,
-        net_arch: list[int],
-        features_extractor: BaseFeaturesExtractor,
-        features_dim: int,
-        activation_fn: type[nn.Module] = nn.ReLU,
-        normalize_images: bool = True,
-        n_critics: int = 2,
-        share_features_extractor: bool = True,
-        norm: CriticNorm | None = None,
-    ):
-        super().__init__(
-            observation_space,
-            action_space,
-            net_arch,
-            features_extractor,
-            features_dim,
-            activation_fn,
-            normalize_images,
-            n_critics,
-            share_features_extractor,
-        )
-        post_linear_modules = (norm or CriticNorm()).post_linear_modules
-        input_dim = features_dim + get_action_dim(action_space)
-        for idx in range(n_critics):
-            layers = create_mlp(input_dim, 1, net_arch, activation_fn, post_linear_modules=post_linear_modules)  # type: ignore[arg-type]
-            self.q_networks[idx] = nn.Sequential(*layers)
-            self.add_module(f"qf{idx}", self.q_networks[idx])
-
-
 class MASACPolicy(CTDEPolicyMixin, SACPolicy):  # type: ignore[misc]
     """
     SAC's policy for CTDE: per-agent squashed Gaussian actors, twin centralized critics on (state, joint action).
@@ -286,10 +247,18 @@ class MASACPolicy(CTDEPolicyMixin, SACPolicy):  # type: ignore[misc]
         super().__init__(*args, **kwargs)
 
     def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> ContinuousCritic:
-        if not self.critic_norm.post_linear_modules:
-            return super().make_critic(features_extractor)
-        critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
-        return NormalizedContinuousCritic(**critic_kwargs, norm=self.critic_norm).to(self.device)
+        """SB3's critics; with DroQ's settings, their Q-networks built again with dropout and LayerNorm."""
+        critic = super().make_critic(features_extractor)
+        post_linear_modules = self.critic_norm.post_linear_modules
+        if not post_linear_modules:
+            return critic
+        input_dim = next(layer for layer in critic.q_networks[0].modules() if isinstance(layer, nn.Linear)).in_features
+        for idx in range(critic.n_critics):
+            arch, activation_fn = self.critic_kwargs["net_arch"], self.critic_kwargs["activation_fn"]
+            layers = create_mlp(input_dim, 1, arch, activation_fn, post_linear_modules=post_linear_modules)  # type: ignore[arg-type]
+            critic.q_networks[idx] = nn.Sequential(*layers).to(self.device)
+            critic.add_module(f"qf{idx}", critic.q_networks[idx])
+        return critic
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()
