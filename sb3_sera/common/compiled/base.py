@@ -2,8 +2,8 @@
 :class:`CompiledUpdate`, the one home of ``compile_update``: an off-policy algorithm that inherits it supplies its
 gradient step as a graph (``CompiledUpdate._gradient_step_graph``) and its optimizers' plans; the class compiles the
 step (the action ``learn()`` takes stays eager, as SB3's), runs a ``train()`` call's steps on batches drawn at once
-without reading anything back, reads the steps' values once per log interval in ``learn()`` (or after every call), logs them and hands
-the algorithm its own (``CompiledUpdate._after_compiled_steps``).
+without reading anything back, reads the steps' values once per log interval in ``learn()`` (or after every call),
+logs them and hands the algorithm its own (``CompiledUpdate._after_compiled_steps``).
 """
 
 import contextlib
