@@ -22,7 +22,7 @@ unadjusted, no test below three runs an arm), which the rule above replaced afte
 """
 
 import math
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -115,6 +115,20 @@ class Claim:
         first, last = self.seeds or (-math.inf, math.inf)
         other_first, other_last = other.seeds or (-math.inf, math.inf)
         return same_runs and bool(common_variant) and max(first, other_first) <= min(last, other_last)
+
+
+def waits_for(claim: Claim, interim: Claim, lacking: Collection[str]) -> bool:
+    """
+    Whether ``claim`` is withheld while ``interim`` waits for runs (``lacking``: its arms below their planned count):
+    it is that claim, or shares runs with it and belongs to its family (a family is decided together), or shares runs
+    of an arm it lacks (whose runs are new). A claim of another family that shares only an arm ``interim`` has whole
+    (runs printed before, such as a baseline's) is not: it tells nothing of ``interim``.
+    """
+    if claim is interim:
+        return True
+    if not claim.shares_runs(interim):
+        return False
+    return claim.family == interim.family or bool({claim.arm, claim.baseline} & set(lacking))
 
 
 def load_claims(path: str | Path) -> list[Claim]:
@@ -339,16 +353,32 @@ def _test(result: ClaimResult, threshold: float) -> None:
 
 def _withhold(results: Sequence[ClaimResult]) -> None:
     """
-    Withhold every number of a claim that reads runs of an interim claim (it would tell the interim state): its
-    difference, interval, p-values and arms' means; it enters the multiplicity adjustments as untested (p = 1).
+    Withhold every number of a claim that waits for an interim claim (:func:`waits_for`: it would tell the interim
+    state): its difference, interval, p-values and arms' means; it enters the multiplicity adjustments as untested
+    (p = 1).
     """
-    interim = [result.claim for result in results if result.claim.planned and result.verdict.startswith("interim")]
+    interim = {
+        result.claim.id: (result.claim, _lacking(result))
+        for result in results
+        if result.claim.planned and result.verdict.startswith("interim")
+    }
     for result in results:
-        holding = [claim.id for claim in interim if claim is not result.claim and claim.shares_runs(result.claim)]
+        holding = [
+            claim.id
+            for claim, lacking in interim.values()
+            if claim is not result.claim and waits_for(result.claim, claim, lacking)
+        ]
         if holding and not result.withheld:
             result.difference = result.low = result.high = None
             result.p_value = result.permutation_p = result.welch_p = None
             result.verdict, result.withheld = f"withheld while {', '.join(holding)} is interim", True
+
+
+def _lacking(result: ClaimResult) -> set[str]:
+    """The arms of ``result``'s claim with fewer runs than it plans."""
+    claim = result.claim
+    counts = {claim.arm: len(result.arm_values), claim.baseline: len(result.baseline_values)}
+    return {arm for arm, count in counts.items() if count < claim.planned}
 
 
 def _adjust(results: Sequence[ClaimResult]) -> None:

@@ -149,8 +149,8 @@ def results_block(ledger: str | Path | LedgerResults = LEDGER_DIR, reps: int = L
         lines += ["The ledger holds no finished run yet.", ""]
     if held:
         lines += [
-            "Held back from every table, figure and claim until the claim, and every claim sharing its runs, has its "
-            "planned runs:",
+            "Held back from every table, figure and claim until the claim, and every claim waiting with it, has its "
+            "planned runs (a run another printed claim reads stays):",
             "",
             *held,
             "",

@@ -220,7 +220,14 @@ def test_the_ledger_declares_its_claims():
     declared = claims.load_claims(Path(__file__).parents[2] / "results" / "claims.yml")
     primary = [claim for claim in declared if claim.primary]
     assert [claim.family for claim in primary].count("paper") == 6
-    assert {claim.task for claim in primary} == {"sb3_sera/HalfCheetah-6x1-v0", "sb3_sera/SimpleSpread-v0"}
+    paper = [claim for claim in primary if claim.family != "fast"]
+    assert {claim.task for claim in paper} == {"sb3_sera/HalfCheetah-6x1-v0", "sb3_sera/SimpleSpread-v0"}
+    # Issue 90's decision: the screen's choice against CrossQ and against the mean of the same critics, 5 runs planned
+    fast = [(c.id, c.task, c.arm, c.baseline, c.planned) for c in primary if c.family == "fast"]
+    assert fast == [
+        ("fast-return-crossq", "HalfCheetah-v5", "serasac_fast", "crossq", 5),
+        ("fast-return-mean", "HalfCheetah-v5", "serasac_fast", "serasac_fast_mean", 5),
+    ]
     assert all(measures.MEASURES[claim.measure].paper_units for claim in primary)
     # The confirmatory test of SERA's weighting: a family of its own, on the new seeds alone, 20 runs an arm planned
     confirmatory = [claim for claim in primary if claim.family == "aggregation"]
@@ -258,7 +265,7 @@ def test_the_ledger_declares_its_claims():
         ("final_return", "crossq"): ("learning_starts",),
         ("auc", "crossq"): ("learning_starts",),
     }
-    assert {c.family for c in declared if not c.primary} == {"exploratory", "paper-budget", "sb3-alternatives"}
+    assert {c.family for c in declared if not c.primary} == {"exploratory", "paper-budget", "sb3-alternatives", "fast"}
     assert sum(c.family == "exploratory" for c in declared) == 50
 
 

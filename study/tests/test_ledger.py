@@ -1,5 +1,6 @@
 """The results ledger: adding finished runs (and refusing the rest), regenerating the docs' results, the readings."""
 
+import dataclasses
 import re
 import shutil
 from collections.abc import Sequence
@@ -12,7 +13,7 @@ import yaml
 
 from sb3_sera.common.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sera_study import bench, intake, ledger
-from sera_study.claims import ClaimResult, evaluate
+from sera_study.claims import ClaimResult, evaluate, load_claims, waits_for
 from sera_study.claims_text import claims_section
 from sera_study.records import read_record
 from sera_study.report import group_runs, load_runs
@@ -361,3 +362,25 @@ def test_an_interim_claim_holds_its_runs_back_from_every_table(bench_out, tmp_pa
         "- toy: 1 of serasac and 1 of sac (2 an arm planned)",
         "- whole: 1 of serasac and 1 of sac (1 an arm planned; held with toy)",
     ]
+
+
+def test_an_interim_claim_leaves_the_runs_another_family_prints(bench_out, tmp_path):
+    # A new arm planned against a baseline the ledger already prints: the baseline's run stays on the pages, and the
+    # other family's claim on it is printed; only the interim claim's family waits
+    results = tmp_path / "results"
+    results.mkdir()
+    toy = "task: Pendulum-v1, n_timesteps: 200, seeds: [0, 1], measure: final_return, direction: higher"
+    declared = [
+        f"{{id: printed, {toy}, arm: serasac, baseline: sac, family: old}}",
+        f"{{id: new, {toy}, arm: fresh, baseline: sac, primary: true, family: new, planned: 1}}",
+        f"{{id: kin, {toy}, arm: serasac, baseline: sac, family: new}}",
+    ]
+    (results / "claims.yml").write_text("alpha: 0.05\nclaims:\n" + "".join(f"  - {claim}\n" for claim in declared))
+    intake.add_runs([bench_out], results)
+    shown, _, held = ledger.published_runs(results)
+    assert sorted(run.variant for run in shown) == ["sac", "serasac"]
+    assert held == ["- new: 0 of fresh and 1 of sac (shown) (1 an arm planned)"]
+    # Who waits for the interim claim: its family where it shares runs, and any claim reading the arm it lacks
+    printed, new, kin = load_claims(results / "claims.yml")
+    assert waits_for(kin, new, {"fresh"}) and not waits_for(printed, new, {"fresh"})
+    assert waits_for(dataclasses.replace(printed, baseline="fresh"), new, {"fresh"})

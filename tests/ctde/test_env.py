@@ -373,9 +373,7 @@ class Flattened(BaseParallelWrapper):
 
 
 def test_dict_observations_are_refused_with_the_way_to_flatten_them():
-    with pytest.raises(
-        TypeError, match=r"Dict\(.*needs Box observations\. Flatten .*gymnasium\.spaces\.flatten_space"
-    ):
+    with pytest.raises(TypeError, match=r"Dict\(.*needs Box observations\. Flatten .*gymnasium\.spaces\.flatten_space"):
         CTDEEnv(DictPoints())
     env = CTDEEnv(Flattened(DictPoints()), reward_mode="sum")
     observation, _ = env.reset(seed=0)
