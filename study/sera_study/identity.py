@@ -75,3 +75,23 @@ def identity_lines(groups: Sequence[Any], hashes: dict[str, dict[str, str]]) -> 
             verdict += f"; the tree at {', '.join(dirty)} was modified, which no hash of the commit covers"
         lines.append(f"- {group.label}: runs {runs_at}; {verdict}.")
     return lines
+
+
+def commit_counts_line(runs: Sequence[RunResult], hashes: dict[str, dict[str, str]] | None) -> str:
+    """
+    One sentence of how many commits the runs come from, how many of those ``code_hashes.yml`` hashes, and how many
+    runs come from the others (named), so that no page keeps such a count by hand.
+    """
+    by_commit: dict[str, int] = {}
+    for run in runs:
+        commit = run_commit(run)[0]
+        by_commit[commit] = by_commit.get(commit, 0) + 1
+    unhashed = {commit: n for commit, n in by_commit.items() if commit not in (hashes or {})}
+    commits = f"{len(by_commit)} commit{'' if len(by_commit) == 1 else 's'}"
+    if not unhashed:
+        return f"The {len(runs)} published runs come from {commits}, each hashed in `{CODE_HASHES_FILE}`."
+    named = ", ".join(f"{commit[:7]} ({n})" for commit, n in sorted(unhashed.items(), key=lambda item: -item[1]))
+    return (
+        f"The {len(runs)} published runs come from {commits}, {len(by_commit) - len(unhashed)} of them hashed in "
+        f"`{CODE_HASHES_FILE}`; the runs of the {len(unhashed)} not hashed, by commit: {named}."
+    )

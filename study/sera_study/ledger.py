@@ -24,8 +24,9 @@ from sera_study.claims import Claim, ClaimResult, default_claims, evaluate, load
 from sera_study.claims_text import claims_section, family_sizes
 from sera_study.declared import seen_before_lines
 from sera_study.defaults import DOCS_DIR, LEDGER_DIR, LEDGER_REPS
-from sera_study.identity import IDENTITY_CHECK, identity_lines, load_code_hashes
+from sera_study.identity import IDENTITY_CHECK, commit_counts_line, identity_lines, load_code_hashes
 from sera_study.interim import held_back
+from sera_study.measures import bias_sign_line
 from sera_study.records import RunResult, read_record
 from sera_study.report import RunGroup, Skipped, group_runs, load_runs, section_table, write_report
 from sera_study.report.tables import resumed_lines
@@ -187,6 +188,8 @@ def results_block(ledger: str | Path | LedgerResults = LEDGER_DIR, reps: int = L
             verdicts = [r.verdict for r in exploratory]
             counts = ", ".join(f"{verdicts.count(v)} {v}" for v in dict.fromkeys(verdicts))
             lines += [f"Exploratory claims on these runs ({counts}): [report.md](report.md).", ""]
+    if runs:
+        lines += [commit_counts_line(runs, results.code_hashes), "", bias_sign_line(runs), ""]
     if skipped:
         # Named inside the ledger, never by the absolute path of the machine that made the block
         folder = results.ledger

@@ -36,7 +36,7 @@ Every summary is computed per run first, then compared across runs: a critic's i
   value correlation (the paper's Fig. 5).
 """
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -201,3 +201,18 @@ MEASURES: dict[str, Measure] = {
     "relative_disagreement": Measure(relative_disagreement, "relative disagreement, last evaluation", False),
     "closest_pair": Measure(closest_pair, "closest pair, last evaluation", False),
 }
+
+
+def bias_sign_line(runs: Sequence[RunResult]) -> str:
+    """
+    One sentence of how many runs with a bias record overestimate ``V(s0)`` (:func:`signed_bias` above 0), in all and
+    on the HalfCheetah tasks, so that no page keeps such a count by hand.
+    """
+    signed = [(run.env_id, value) for run in runs if (value := signed_bias(run)) is not None]
+    cheetah = [value for env_id, value in signed if "HalfCheetah" in env_id]
+    over = sum(value > 0 for _, value in signed)
+    return (
+        f"Of the {len(signed)} published runs with an initial-state bias record, {over} overestimate `V(s0)` (a mean "
+        f"signed bias above 0 after learning_starts); on the HalfCheetah tasks {sum(value > 0 for value in cheetah)} of "
+        f"{len(cheetah)}."
+    )

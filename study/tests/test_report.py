@@ -11,6 +11,8 @@ from scipy import stats as scipy_stats
 from sb3_sera.common.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sera_study import stats
 from sera_study.cli import main
+from sera_study.identity import commit_counts_line
+from sera_study.measures import bias_sign_line
 from sera_study.records import RunResult
 from sera_study.report import aligned, group_runs, load_runs, report_roots, write_report
 from sera_study.report.groups import RunGroup
@@ -428,3 +430,25 @@ def test_the_curves_at_the_papers_budget_carry_its_values(tmp_path, monkeypatch)
     assert sorted(tuple(bar.lines[0].get_xydata()[0]) for bar in bars) == [(297_750, 5520), (302_250, 4500)]
     assert {bar.lines[0].get_color() for bar in bars} == {colors["serasac"], colors["masac"]}
     figures.pyplot().close(drawn[0])
+
+
+def test_the_ledgers_counts_of_commits_and_of_overestimating_runs_are_computed(tmp_path):
+    root = tmp_path / "runs"
+    fake_run(root, "serasac", 1, 0, [0.0, 1.0, 2.0], bias=1.0)  # V(s0) above the discounted return: overestimates
+    fake_run(root, "serasac", 2, 1, [0.0, 1.0, 2.0], bias=-1.0)
+    fake_run(root, "sac", 1, 0, [0.0, 1.0, 2.0], bias=-2.0, env_id="Pendulum-v1")
+    fake_run(root, "masac", 1, 0, [0.0, 1.0, 2.0])  # no bias record
+    runs, _ = load_runs([root])
+    assert bias_sign_line(runs) == (
+        "Of the 3 published runs with an initial-state bias record, 1 overestimate `V(s0)` (a mean signed bias above 0 "
+        "after learning_starts); on the HalfCheetah tasks 1 of 2."
+    )
+    # The records name no commit: one commit, "unknown", which no table hashes
+    assert commit_counts_line(runs, {}) == (
+        "The 4 published runs come from 1 commit, 0 of them hashed in `code_hashes.yml`; the runs of the 1 not hashed, "
+        "by commit: unknown (4)."
+    )
+    assert (
+        commit_counts_line(runs, {"unknown": {}})
+        == "The 4 published runs come from 1 commit, each hashed in `code_hashes.yml`."
+    )
