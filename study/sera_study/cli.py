@@ -306,8 +306,7 @@ def build_parser() -> argparse.ArgumentParser:
     led_report.set_defaults(func=_ledger_report)
     for command in defaults.ZOO_COMMANDS:
         # Listed for --help; main() hands their arguments to rl-zoo3 untouched
-        extra = "; --checkpoint-freq N: resumable, the same command resumes it" if command == "train" else ""
-        commands.add_parser(command, add_help=False, help=f"rl-zoo3's {command} with sb3-sera's algorithms (zoo flags{extra})")
+        commands.add_parser(command, add_help=False, help=f"rl-zoo3's {command} with sb3-sera's algorithms (zoo flags)")
     return parser
 
 

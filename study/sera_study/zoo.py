@@ -2,17 +2,15 @@
 ``sb3-sera train``, ``optimize``, ``enjoy`` and ``record-video``: the library's rl-zoo3 registration
 (:mod:`sb3_sera.zoo`), its evaluations recording the initial-state value bias, argument checks, then the zoo's own
 ``train``, ``enjoy`` and ``record_video`` with the package's ``hyperparams/<algo>.yml`` as the default
-``--conf-file``; ``train`` with the run engine's checkpoints, from which the same command line resumes an
-interrupted train (``_CheckpointedTrain``).
+``--conf-file``. A run that must resume to the same bits goes through the run engine (``compare``, ``bench``).
 """
 
-import json
 import os
 import runpy
 import shutil
 import sys
 from collections.abc import Callable, Sequence
-from contextlib import nullcontext, suppress
+from contextlib import suppress
 from pathlib import Path
 from typing import Any
 
@@ -202,150 +200,10 @@ def check_algo_task(algo: str, env_id: str | None) -> None:
         raise ValueError(f"{algo} is single-agent only: train it on a Gymnasium task (HalfCheetah-v5, ...), not {env_id}")
 
 
-#: The zoo command line a train's run folder records, to be told apart from another command's run
-ZOO_COMMAND_FILE = "sb3_sera_command.json"
-#: Our own flag of ``sb3-sera train``, taken out before rl-zoo3 reads the rest
-CHECKPOINT_FLAG = "--checkpoint-freq"
-
-
-def _take_checkpoint_freq(args: list[str]) -> tuple[list[str], int]:
-    """``args`` without :data:`CHECKPOINT_FLAG` and its value, and that value (the default where it is absent)."""
-    from sera_study.checkpoint import CHECKPOINT_FREQ
-
-    value = _flag_value(args, CHECKPOINT_FLAG)
-    if value is None:
-        return args, CHECKPOINT_FREQ
-    if not value.isdigit():
-        raise ValueError(f"{CHECKPOINT_FLAG}={value!r} is invalid: expected the steps between checkpoints, 0 for none")
-    index = next(i for i, arg in enumerate(args) if arg == CHECKPOINT_FLAG or arg.startswith(f"{CHECKPOINT_FLAG}="))
-    return [*args[:index], *args[index + (1 if "=" in args[index] else 2) :]], int(value)
-
-
-def _resumable_run(args: Sequence[str]) -> Path | None:
-    """
-    The run folder of ``sb3-sera train`` with these arguments that was interrupted after a checkpoint: the task's
-    latest run under the log folder, where it recorded the same command line and still holds its checkpoint (a
-    finished run's is removed); None where there is none.
-    """
-    from rl_zoo3.utils import get_latest_run_id
-
-    from sera_study.checkpoint import has_checkpoint
-    from sera_study.records import env_name
-
-    env_id = _flag_value(args, "--env") or "CartPole-v1"
-    runs = Path(_flag_value(args, "-f", "--log-folder") or "logs") / (_flag_value(args, "--algo") or "ppo")
-    latest = runs / f"{env_name(env_id)}_{get_latest_run_id(str(runs), env_name(env_id))}"
-    record = latest / ZOO_COMMAND_FILE
-    if not (record.exists() and has_checkpoint(latest)):
-        return None
-    return latest if json.loads(record.read_text()) == list(args) else None
-
-
-class _CheckpointedTrain:
-    """
-    rl-zoo3's train with the run engine's checkpoints (every ``every`` steps, 0: none) in its run folder, resuming an
-    interrupted run of the same command line (:func:`_resumable_run`) from its last one instead of starting anew: to
-    the same final parameters, evaluations and monitor rows as a run never interrupted. Used as a context manager,
-    it patches rl-zoo3's ``ExperimentManager`` while the train runs.
-    """
-
-    PATCHED = ("__init__", "create_envs", "setup_experiment", "learn")
-
-    def __init__(self, args: list[str], every: int) -> None:
-        from rl_zoo3.exp_manager import ExperimentManager
-
-        self.args, self.every = args, every
-        self.resume = _resumable_run(args) if every > 0 else None
-        self.manager = ExperimentManager
-        self.originals = {name: getattr(ExperimentManager, name) for name in self.PATCHED}
-
-    def __enter__(self) -> None:
-        for name in self.PATCHED:
-            setattr(self.manager, name, getattr(self, f"_{name.strip('_')}")())
-
-    def __exit__(self, *exc_info: Any) -> None:
-        for name, method in self.originals.items():
-            setattr(self.manager, name, method)
-
-    def _init(self) -> Callable[..., None]:
-        def init(manager: Any, *args: Any, **kwargs: Any) -> None:
-            self.originals["__init__"](manager, *args, **kwargs)
-            if self.resume is not None:
-                manager.save_path = str(self.resume)
-                manager.params_path = f"{manager.save_path}/{manager.env_name}"
-
-        return init
-
-    def _create_envs(self) -> Callable[..., Any]:
-        def create_envs(manager: Any, n_envs: int, eval_env: bool = False, no_log: bool = False) -> Any:
-            # A resumed run's monitor file is reopened by its checkpoint, never started again
-            no_log = no_log or self.resume is not None
-            return self.originals["create_envs"](manager, n_envs, eval_env=eval_env, no_log=no_log)
-
-        return create_envs
-
-    def _setup_experiment(self) -> Callable[..., Any]:
-        from sera_study.checkpoint import Checkpointer, checkpoint_step, load_checkpoint
-
-        def setup_experiment(manager: Any) -> Any:
-            result = self.originals["setup_experiment"](manager)
-            if result is None or self.every <= 0:
-                return result
-            model, saved = result
-            folder = Path(manager.save_path)
-            (folder / ZOO_COMMAND_FILE).write_text(json.dumps(self.args))
-            evaluation = next((c for c in manager.callbacks if isinstance(c, InitialStateBiasCallback)), None)
-            elapsed = 0.0
-            if self.resume is not None:
-                print(f"Resuming {folder} from its checkpoint at step {checkpoint_step(folder)}", file=sys.stderr)
-                model, elapsed = load_checkpoint(type(model), folder, manager.device, model.env, evaluation)
-
-            def make_envs() -> tuple[Any, Any]:
-                return manager.create_envs(model.n_envs, no_log=True), manager.create_envs(manager.n_eval_envs, eval_env=True)
-
-            task = manager.env_name.gym_id
-            manager.callbacks.append(Checkpointer(folder, self.every, evaluation, make_envs, task, elapsed))
-            return model, saved
-
-        return setup_experiment
-
-    def _learn(self) -> Callable[..., None]:
-        from sera_study.checkpoint import checkpoint_step, remove_checkpoints
-
-        def learn(manager: Any, model: Any) -> None:
-            if self.every <= 0 or manager.algo == "ars":
-                self.originals["learn"](manager, model)
-                return
-            # rl-zoo3's learn, on from a resumed run's step to the budget the command names
-            kwargs: dict[str, Any] = {"callback": manager.callbacks}
-            if manager.log_interval > -1:
-                kwargs["log_interval"] = manager.log_interval
-            elif manager.log_interval < -1:
-                kwargs["log_interval"] = None
-            done, folder = model.num_timesteps, Path(manager.save_path)
-            try:
-                model.learn(manager.n_timesteps - done, reset_num_timesteps=done == 0, **kwargs)
-            except KeyboardInterrupt:
-                # As rl-zoo3: the model is saved after this; and the same command resumes from the checkpoint
-                step = checkpoint_step(folder)
-                where = f"resumes it from step {step}" if step is not None else "starts it again (no checkpoint yet)"
-                print(f"Interrupted: the same command {where} in {folder}", file=sys.stderr)
-            else:
-                remove_checkpoints(folder)
-            finally:
-                if manager.callbacks:
-                    manager.callbacks[0].on_training_end()
-                with suppress(EOFError):  # as rl-zoo3: a subprocess env may be gone already
-                    model.env.close()
-
-        return learn
-
-
 def run_zoo(command: str, argv: Sequence[str]) -> None:
     """
-    Run rl-zoo3's ``command`` (train, enjoy, record-video, optimize) with the package's algorithms. ``train`` also
-    takes :data:`CHECKPOINT_FLAG` (default every 10,000 steps, 0: none): checkpoints of the run engine in the run's
-    folder, from which the same command line resumes an interrupted run (``_CheckpointedTrain``).
+    Run rl-zoo3's ``command`` (train, enjoy, record-video, optimize) with the package's algorithms: rl-zoo3's own,
+    which saves the model when Ctrl-C stops a train.
     """
     register_with_zoo(command)
     from rl_zoo3.enjoy import enjoy
@@ -362,9 +220,6 @@ def run_zoo(command: str, argv: Sequence[str]) -> None:
         "record-video": record_video,
     }
     args = zoo_argv(command, argv)
-    every = 0
-    if command == "train":
-        args, every = _take_checkpoint_freq(args)
     saved = sys.argv
     sys.argv = [f"sb3-sera {command}", *args]
     # A train that fails before its first evaluation or model leaves no run folder behind
@@ -373,8 +228,7 @@ def run_zoo(command: str, argv: Sequence[str]) -> None:
     made = [folder for folder in (log_folder, runs) if not folder.exists()]
     before = set(runs.iterdir()) if runs.is_dir() else set()
     try:
-        with _CheckpointedTrain(args, every) if command == "train" else nullcontext():
-            entry_points[command]()
+        entry_points[command]()
     except BaseException:
         if command in ("train", "optimize") and runs.is_dir():
             for folder in set(runs.iterdir()) - before:
