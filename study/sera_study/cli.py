@@ -207,6 +207,16 @@ def build_parser() -> argparse.ArgumentParser:
     # The library's version from its metadata: importing it would import torch before --help is answered
     parser.add_argument("--version", action="version", version=f"%(prog)s {metadata.version('sb3-sera')}")
     commands = parser.add_subparsers(dest="command", required=True)
+    for add_command in (_add_compare, _add_bench, _add_report, _add_ledger):
+        add_command(commands)
+    for command in defaults.ZOO_COMMANDS:
+        # Listed for --help; main() hands their arguments to rl-zoo3 untouched
+        commands.add_parser(command, add_help=False, help=f"rl-zoo3's {command} with sb3-sera's algorithms (zoo flags)")
+    return parser
+
+
+def _add_compare(commands: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None:
+    """``sb3-sera compare``'s arguments."""
     comp = commands.add_parser(
         "compare",
         help="train algorithms on one task for several seeds with hyperparams/<algo>.yml, then report them",
@@ -240,6 +250,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_run_flags(comp)
     comp.set_defaults(func=_compare)
+
+
+def _add_bench(commands: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None:
+    """``sb3-sera bench``'s arguments."""
     grid = commands.add_parser(
         "bench",
         help="run a grid of variants x tasks x seeds from a YAML file, locally or on Ray; resumes where it stopped",
@@ -262,6 +276,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_run_flags(grid)
     grid.set_defaults(func=_bench)
+
+
+def _add_report(commands: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None:
+    """``sb3-sera report``'s arguments."""
     rep = commands.add_parser(
         "report",
         help="a Markdown report (IQM and bootstrap intervals, paper tables, figures) from rl-zoo3-style run folders",
@@ -276,6 +294,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--matrix-step", type=int, default=None, help="step of the correlation matrices (default: the last evaluation)"
     )
     rep.set_defaults(func=_report)
+
+
+def _add_ledger(commands: "argparse._SubParsersAction[argparse.ArgumentParser]") -> None:
+    """``sb3-sera ledger add`` and ``ledger report``'s arguments."""
     led = commands.add_parser(
         "ledger",
         help="the committed results ledger (results/): add finished runs, regenerate the README's results from it",
@@ -304,10 +326,6 @@ def build_parser() -> argparse.ArgumentParser:
     led_report.add_argument("--docs", default=defaults.DOCS_DIR, help="folder of the full report and its figures")
     led_report.add_argument("--reps", type=int, default=defaults.LEDGER_REPS, help="bootstrap resamples of every interval")
     led_report.set_defaults(func=_ledger_report)
-    for command in defaults.ZOO_COMMANDS:
-        # Listed for --help; main() hands their arguments to rl-zoo3 untouched
-        commands.add_parser(command, add_help=False, help=f"rl-zoo3's {command} with sb3-sera's algorithms (zoo flags)")
-    return parser
 
 
 def main(argv: Sequence[str] | None = None) -> None:

@@ -223,67 +223,20 @@ def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
     # its first process built them
     import rl_zoo3.gym_patches  # noqa: F401
 
-    # An interrupted run starts again here, maybe under newer code (or on another machine, a Ray task retried after
-    # its node was lost): its record names the code that runs now, its resumes (below) the code before, and its
-    # attempts where each start ran
-    append_record(folder / ATTEMPTS_FILE, {"at": utc_stamp(), **placement()})
-    records = records_dir(folder, spec.env_id) / "args.yml"
-    code_before = (yaml.safe_load(records.read_text()) or {}).get("git_commit") if records.exists() else None
-    args = plain(spec.args())
-    write_atomic(records, yaml.safe_dump(args, sort_keys=True))
+    code = _start_records(spec, folder)
     if spec.num_threads is not None:
         th.set_num_threads(spec.num_threads)
-    env_kwargs = spec.hyperparams.get("env_kwargs") or {}
-    n_envs = int(spec.hyperparams.get("n_envs", 1))
-
-    def make_env(monitor_dir: str | None = None) -> VecEnv:
-        return make_vec_env(spec.env_id, n_envs=n_envs, seed=spec.seed, monitor_dir=monitor_dir, env_kwargs=env_kwargs)
-
-    def make_eval_env() -> VecEnv:
-        return make_vec_env(spec.env_id, n_envs=1, seed=spec.seed + 10_000, env_kwargs=env_kwargs)
+    envs = _RunEnvs(spec, folder)
+    callback = envs.callback()
+    model, elapsed, callback = _resumed(spec, folder, envs, callback, code)
+    if model is None:
+        model = make_model(spec, envs.train(str(folder)), tensorboard_log=str(folder))
+    trained = model
 
     def make_both() -> tuple[VecEnv, VecEnv]:
         # As the model sees its envs (IET's with its latents), for the checkpoint's check that their states go back
-        assert model is not None
-        return as_the_model_sees(model, make_env()), as_the_model_sees(model, make_eval_env())
+        return as_the_model_sees(trained, envs.train()), as_the_model_sees(trained, envs.evaluation())
 
-    def make_callback() -> InitialStateBiasCallback:
-        return InitialStateBiasCallback(
-            make_eval_env(),
-            eval_freq=max(spec.eval_freq // n_envs, 1),
-            n_eval_episodes=spec.n_eval_episodes,
-            log_path=str(folder),
-            verbose=0,
-        )
-
-    callback = make_callback()
-    elapsed = 0.0
-    model: BaseAlgorithm | None = None
-    if has_checkpoint(folder):
-        # Interrupted: on from the last checkpoint, to the same final parameters as a run never interrupted
-        env = make_env()
-        try:
-            model, elapsed = load_checkpoint(algorithm_classes()[spec.algo], folder, spec.device, env, callback)
-        except Exception as error:  # whatever it is, the run starts again and the checkpoint is kept for inspection
-            env.close()
-            callback.eval_env.close()
-            aside = set_aside(folder, spec.env_id, error)
-            notice(
-                f"{folder}: not resumed: its checkpoint cannot be loaded ({type(error).__name__}: {error}); the run "
-                f"is kept as {aside.name}, and starts again from step 0 in {folder.name}"
-            )
-            callback = make_callback()
-        else:
-            resume = {
-                "from_step": int(model.num_timesteps),
-                "at": utc_stamp(),
-                "code_before": code_before,
-                "code_after": args.get("git_commit"),
-            }
-            append_record(folder / RESUMES_FILE, resume)
-            notice(f"{folder}: resumed from step {model.num_timesteps:,}")
-    if model is None:
-        model = make_model(spec, make_env(str(folder)), tensorboard_log=str(folder))
     callbacks: list[BaseCallback] = [callback, ProgressFile(folder / PROGRESS_FILE)]
     if spec.checkpoint_freq > 0:
         callbacks.append(Checkpointer(folder, spec.checkpoint_freq, callback, make_both, spec.env_id, elapsed))
@@ -296,7 +249,91 @@ def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
         tb_log_name=f"{spec.variant}_seed{spec.seed}",
         reset_num_timesteps=model.num_timesteps == 0,
     )
-    wall_time = elapsed + time.perf_counter() - start
+    _finish(spec, folder, model, callback, elapsed + time.perf_counter() - start)
+    return load_result(folder)
+
+
+def _start_records(spec: RunSpec, folder: Path) -> tuple[str | None, str | None]:
+    """
+    Record where this start runs and the run's settings; the commits of the code that ran the run before (None for a
+    run never started) and of the code that runs now.
+    """
+    # An interrupted run starts again here, maybe under newer code (or on another machine, a Ray task retried after
+    # its node was lost): its record names the code that runs now, its resumes (below) the code before, and its
+    # attempts where each start ran
+    append_record(folder / ATTEMPTS_FILE, {"at": utc_stamp(), **placement()})
+    records = records_dir(folder, spec.env_id) / "args.yml"
+    code_before = (yaml.safe_load(records.read_text()) or {}).get("git_commit") if records.exists() else None
+    args = plain(spec.args())
+    write_atomic(records, yaml.safe_dump(args, sort_keys=True))
+    return code_before, args.get("git_commit")
+
+
+class _RunEnvs:
+    """
+    A run's environments: the training env (monitored in the run's folder, or not), the evaluation env, and the
+    evaluation callback that records the run's evaluations in its folder.
+    """
+
+    def __init__(self, spec: RunSpec, folder: Path):
+        self.spec, self.folder = spec, folder
+        self.env_kwargs = spec.hyperparams.get("env_kwargs") or {}
+        self.n_envs = int(spec.hyperparams.get("n_envs", 1))
+
+    def train(self, monitor_dir: str | None = None) -> VecEnv:
+        spec = self.spec
+        return make_vec_env(
+            spec.env_id, n_envs=self.n_envs, seed=spec.seed, monitor_dir=monitor_dir, env_kwargs=self.env_kwargs
+        )
+
+    def evaluation(self) -> VecEnv:
+        return make_vec_env(self.spec.env_id, n_envs=1, seed=self.spec.seed + 10_000, env_kwargs=self.env_kwargs)
+
+    def callback(self) -> InitialStateBiasCallback:
+        return InitialStateBiasCallback(
+            self.evaluation(),
+            eval_freq=max(self.spec.eval_freq // self.n_envs, 1),
+            n_eval_episodes=self.spec.n_eval_episodes,
+            log_path=str(self.folder),
+            verbose=0,
+        )
+
+
+def _resumed(
+    spec: RunSpec,
+    folder: Path,
+    envs: _RunEnvs,
+    callback: InitialStateBiasCallback,
+    code: tuple[str | None, str | None],
+) -> tuple[BaseAlgorithm | None, float, InitialStateBiasCallback]:
+    """
+    An interrupted run's model from its last checkpoint, the wall time it had, and the callback that goes on with its
+    evaluations; ``(None, 0.0, callback)`` where there is none, or where it cannot be loaded (the run is set aside,
+    and a new callback starts it again from step 0).
+    """
+    if not has_checkpoint(folder):
+        return None, 0.0, callback
+    # Interrupted: on from the last checkpoint, to the same final parameters as a run never interrupted
+    env = envs.train()
+    try:
+        model, elapsed = load_checkpoint(algorithm_classes()[spec.algo], folder, spec.device, env, callback)
+    except Exception as error:  # whatever it is, the run starts again and the checkpoint is kept for inspection
+        env.close()
+        callback.eval_env.close()
+        aside = set_aside(folder, spec.env_id, error)
+        notice(
+            f"{folder}: not resumed: its checkpoint cannot be loaded ({type(error).__name__}: {error}); the run "
+            f"is kept as {aside.name}, and starts again from step 0 in {folder.name}"
+        )
+        return None, 0.0, envs.callback()
+    resume = {"from_step": int(model.num_timesteps), "at": utc_stamp(), "code_before": code[0], "code_after": code[1]}
+    append_record(folder / RESUMES_FILE, resume)
+    notice(f"{folder}: resumed from step {model.num_timesteps:,}")
+    return model, elapsed, callback
+
+
+def _finish(spec: RunSpec, folder: Path, model: BaseAlgorithm, callback: InitialStateBiasCallback, wall_time: float) -> None:
+    """Save the model, close the envs and write ``result.json``, whose presence marks the run as finished."""
     (folder / PROGRESS_FILE).unlink(missing_ok=True)
     model.save(folder / env_name(spec.env_id))
     assert model.env is not None
@@ -315,4 +352,3 @@ def train_one(spec: RunSpec, folder: str | Path) -> RunResult:
         (folder / name).unlink(missing_ok=True)
     if not spec.keep_checkpoints:
         remove_checkpoints(folder)
-    return load_result(folder)

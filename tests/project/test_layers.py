@@ -1,5 +1,6 @@
 """The library's layers point down only (common < ctde < the algorithms < the zoo registration), the library never
-imports the study, neither package has an import cycle, and every module of both imports on its own."""
+imports the study, neither package has an import cycle, every module of both imports on its own, and no function of
+either is longer than 80 lines."""
 
 import ast
 import subprocess
@@ -106,3 +107,19 @@ def test_the_package_init_needs_no_import_order():
     assert "order matters" not in text.lower() and "noqa: I001" not in text
     # ... and a plain one, as sb3-contrib's: its names imported, none on first use through a module __getattr__
     assert "def __getattr__" not in text
+
+
+#: The longest function either package may have, in lines (signature, docstring and body)
+LONGEST_FUNCTION = 80
+
+
+@pytest.mark.parametrize("package", ["sb3_sera", "study/sera_study"])
+def test_no_function_is_longer_than_eighty_lines(package):
+    longer = []
+    for path in sorted((ROOT / package).rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                length = node.end_lineno - node.lineno + 1  # type: ignore[operator]
+                if length > LONGEST_FUNCTION:
+                    longer.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name} ({length} lines)")
+    assert longer == []

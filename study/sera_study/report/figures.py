@@ -317,6 +317,31 @@ def _off_diagonal_min(matrix: np.ndarray) -> float:
 SATURATED = 0.9995
 
 
+def _median_matrices(
+    group: RunGroup, rows: Sequence[tuple[str, str]], step: int | None
+) -> dict[str, tuple[np.ndarray, int, int, int]]:
+    """
+    Per matrix of ``rows`` that the group's runs recorded (K >= 3, finite) at the evaluation nearest ``step`` (None:
+    the last): the median run's matrix by mean off-diagonal correlation, its seed, its step and the number of runs.
+    """
+    chosen: dict[str, tuple[np.ndarray, int, int, int]] = {}
+    for key, _ in rows:
+        candidates = []
+        for run in group.runs:
+            records = load_diagnostics(run)
+            if records is None or key not in records or records[key].shape[-1] < 3:
+                continue
+            target = records["timesteps"][-1] if step is None else step
+            index = int(np.argmin(np.abs(records["timesteps"] - target)))
+            if np.isfinite(records[key][index]).all():
+                candidates.append((records[key][index], run.seed, int(records["timesteps"][index])))
+        if candidates:
+            candidates.sort(key=lambda item: _off_diagonal_mean(item[0]))
+            matrix, seed, at = candidates[(len(candidates) - 1) // 2]
+            chosen[key] = (matrix, seed, at, len(candidates))
+    return chosen
+
+
 def plot_correlation_matrices(groups: Sequence[RunGroup], path: Path, step: int | None) -> str | None:
     """
     The K x K correlation matrices of the critics (paper Fig. 5) of each ensemble group (K >= 3) at the evaluation
@@ -335,25 +360,7 @@ def plot_correlation_matrices(groups: Sequence[RunGroup], path: Path, step: int 
             for d in map(load_diagnostics, g.runs)
         )
     ]
-    panels: list[tuple[RunGroup, dict[str, tuple[np.ndarray, int, int, int]]]] = []
-    for group in groups:
-        chosen: dict[str, tuple[np.ndarray, int, int, int]] = {}
-        for key, _ in rows:
-            candidates = []
-            for run in group.runs:
-                records = load_diagnostics(run)
-                if records is None or key not in records or records[key].shape[-1] < 3:
-                    continue
-                target = records["timesteps"][-1] if step is None else step
-                index = int(np.argmin(np.abs(records["timesteps"] - target)))
-                if np.isfinite(records[key][index]).all():
-                    candidates.append((records[key][index], run.seed, int(records["timesteps"][index])))
-            if candidates:
-                candidates.sort(key=lambda item: _off_diagonal_mean(item[0]))
-                matrix, seed, at = candidates[(len(candidates) - 1) // 2]
-                chosen[key] = (matrix, seed, at, len(candidates))
-        if chosen:
-            panels.append((group, chosen))
+    panels = [(group, chosen) for group in groups if (chosen := _median_matrices(group, rows, step))]
     if not panels:
         return None
     # A row whose every pair correlates at 1.000 as printed says nothing a sentence does not

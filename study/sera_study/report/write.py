@@ -95,43 +95,10 @@ def write_report(
     if sizes:
         lines += ["## Primary claims", "", *claims_section([r for r in decided if r.claim.primary], sizes), ""]
     for number, ((env_id, budget), groups) in enumerate(sections_by_key.items(), start=1):
-        stem = f"{env_name(env_id)}_{budget}"
         if log is not None:
             log(f"report: section {number}/{len(sections_by_key)}, {env_id} at {budget:,} steps: table, claims, figures")
         lines += section_text(groups, all_groups, section_claims(decided, env_id, budget), sizes, code_hashes, reps)
-        grid_notes = plot_curves(
-            groups,
-            attribute="returns",
-            ylabel="evaluation return",
-            title=_curves_title(env_id, budget, groups),
-            path=folder / f"{stem}_curves.png",
-            colors=colors,
-            reps=reps,
-            paper=_paper_points(env_id, budget, groups),
-        )
-        lines += [f"![{env_id} learning curves]({stem}_curves.png)", ""]
-        lines += [f"- {note}" for note in grid_notes] + ([""] if grid_notes else [])
-        if any(run.initial_state_bias for group in groups for run in group.runs):
-            plot_curves(
-                groups,
-                attribute="initial_state_bias",
-                ylabel="V(s0) - discounted return",
-                title=f"Initial-state bias (Fig. 4a), {env_id}",
-                path=folder / f"{stem}_bias.png",
-                colors=colors,
-                reps=reps,
-                zero_line=True,
-            )
-            lines += [f"![{env_id} initial-state bias]({stem}_bias.png)", ""]
-        if len(groups) > 1:
-            plot_auc_bars(groups, path=folder / f"{stem}_auc.png", colors=colors, reps=reps)
-            lines += [f"![{env_id} normalized AUC]({stem}_auc.png)", ""]
-        lines += _diagnostics_lines(groups, folder / f"{stem}_diagnostics.png", env_id, colors, reps)
-        matrices = plot_correlation_matrices(groups, folder / f"{stem}_correlations.png", matrix_step)
-        if (folder / f"{stem}_correlations.png").exists():
-            lines += [f"![{env_id} critic correlation matrices]({stem}_correlations.png)", ""]
-        if matrices is not None:
-            lines += [matrices, ""]
+        lines += _section_figures(groups, folder, (env_id, budget), colors, reps, matrix_step)
     for budget in sorted({budget for _, budget in sections_by_key}):
         same_budget = [groups for (_, b), groups in sections_by_key.items() if b == budget]
         if len(same_budget) > 1:
@@ -149,6 +116,57 @@ def write_report(
     report = folder / "report.md"
     report.write_text("\n".join(lines))
     return report
+
+
+def _section_figures(
+    groups: Sequence[RunGroup],
+    folder: Path,
+    section: tuple[str, int],
+    colors: dict[str, Any],
+    reps: int,
+    matrix_step: int | None,
+) -> list[str]:
+    """
+    A section's figures, drawn into ``folder``, and its lines that show them: the learning curves, the initial-state
+    bias, the curves' areas, the critic diagnostics and the correlation matrices, each where the runs have it.
+    """
+    env_id, budget = section
+    stem = f"{env_name(env_id)}_{budget}"
+    lines: list[str] = []
+    grid_notes = plot_curves(
+        groups,
+        attribute="returns",
+        ylabel="evaluation return",
+        title=_curves_title(env_id, budget, groups),
+        path=folder / f"{stem}_curves.png",
+        colors=colors,
+        reps=reps,
+        paper=_paper_points(env_id, budget, groups),
+    )
+    lines += [f"![{env_id} learning curves]({stem}_curves.png)", ""]
+    lines += [f"- {note}" for note in grid_notes] + ([""] if grid_notes else [])
+    if any(run.initial_state_bias for group in groups for run in group.runs):
+        plot_curves(
+            groups,
+            attribute="initial_state_bias",
+            ylabel="V(s0) - discounted return",
+            title=f"Initial-state bias (Fig. 4a), {env_id}",
+            path=folder / f"{stem}_bias.png",
+            colors=colors,
+            reps=reps,
+            zero_line=True,
+        )
+        lines += [f"![{env_id} initial-state bias]({stem}_bias.png)", ""]
+    if len(groups) > 1:
+        plot_auc_bars(groups, path=folder / f"{stem}_auc.png", colors=colors, reps=reps)
+        lines += [f"![{env_id} normalized AUC]({stem}_auc.png)", ""]
+    lines += _diagnostics_lines(groups, folder / f"{stem}_diagnostics.png", env_id, colors, reps)
+    matrices = plot_correlation_matrices(groups, folder / f"{stem}_correlations.png", matrix_step)
+    if (folder / f"{stem}_correlations.png").exists():
+        lines += [f"![{env_id} critic correlation matrices]({stem}_correlations.png)", ""]
+    if matrices is not None:
+        lines += [matrices, ""]
+    return lines
 
 
 def section_text(
