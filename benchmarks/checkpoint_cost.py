@@ -1,5 +1,5 @@
 """
-What a run's checkpoint costs (``sera_study.checkpoint``): its size on disk and the time to write and to
+What a run's checkpoint costs (``sera_study.runs.checkpoint``): its size on disk and the time to write and to
 read it, for SERASAC on HalfCheetah-v5 (or ``--env``: a multi-agent task with the CTDE policy) with a replay buffer
 holding ``--filled`` transitions (the buffer's contents are filled in directly: what is measured is their size, not how
 they were collected). Reading includes building the environment anew and writing its saved state into it.
@@ -19,7 +19,7 @@ import torch as th
 from stable_baselines3.common.env_util import make_vec_env
 
 from sb3_sera import SERASAC
-from sera_study.checkpoint import CHECKPOINT_DIR, load_checkpoint, save_checkpoint
+from sera_study.runs.checkpoint import CHECKPOINT_DIR, load_checkpoint, save_checkpoint
 
 
 def main() -> None:

@@ -20,7 +20,7 @@ versions.
 
 ``--ledger-commits`` checks out every commit the ledger's runs name into a temporary git worktree and hashes there
 (this script, run against that commit's package). ``--write`` stores the table in the ledger, where the report reads
-it to flag a group whose runs' code trains differently (``sera_study.identity``). ``--new-commits`` adds
+it to flag a group whose runs' code trains differently (``sera_study.results.identity``). ``--new-commits`` adds
 to that table only what it lacks (after new runs: a configuration at a commit it had not run at), so that adding a
 run does not hash the whole ledger again.
 """
@@ -53,7 +53,7 @@ EVALUATION_FILES = ("evaluations.npz", "initial_state_bias.npz", "critic_diagnos
 
 def configurations(ledger: Path) -> dict[str, dict[str, Any]]:
     """Every distinct (variant, task, hyperparameters) of the ledger by its key, with the commits that ran it."""
-    from sera_study.identity import configuration_key
+    from sera_study.results.identity import configuration_key
 
     found: dict[str, dict[str, Any]] = {}
     for args_file in sorted(ledger.glob("*/*/*/args.yml")):
@@ -121,7 +121,7 @@ def hash_configuration(algo: str, env_id: str, config: dict[str, Any]) -> str:
     from stable_baselines3.common.noise import NormalActionNoise
 
     import sb3_sera
-    from sera_study.zoo import ZOO_ALGOS
+    from sera_study.runs.zoo import ZOO_ALGOS
 
     assert Path(sb3_sera.__file__).resolve().is_relative_to(Path(os.environ.get("HASH_TREE", ROOT)).resolve())
     kwargs = {key: literal(value) for key, value in config.items() if key not in RUN_KEYS}

@@ -1,5 +1,5 @@
 """
-The type-I error of a claim's test (``sera_study.stats.decision_p_value``): how often it rejects at alpha
+The type-I error of a claim's test (``sera_study.results.stats.decision_p_value``): how often it rejects at alpha
 0.05 when the two arms' means are equal, at 10 runs against 5 with standard deviations 2.5x apart, for normal data and
 for skewed data (a centred gamma of shape 4, skewness 1), the larger spread on either arm; beside it, the studentized
 permutation test and Welch's t-test alone.
@@ -11,7 +11,7 @@ import argparse
 
 import numpy as np
 
-from sera_study.stats import decision_p_value
+from sera_study.results.stats import decision_p_value
 
 
 def main() -> None:

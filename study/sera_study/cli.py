@@ -28,7 +28,7 @@ def _print_report(results: "list[RunResult]", out: str, name: str, reps: int, su
     where there is no ``summary``) and where the report, its figures and the runs are, then ``summary`` (the
     comparison in short and what it means), last, where the eye lands.
     """
-    from sera_study import report
+    from sera_study.results import report
 
     folder = report.next_report_folder(Path(out) / "reports", name)
     path = report.write_report(results, folder, reps=reps, sources=[out], log=lambda line: print(line, file=sys.stderr))
@@ -59,8 +59,9 @@ def _figures(report_path: Path) -> str:
 
 
 def _compare(args: argparse.Namespace) -> None:
-    from sera_study import compare
     from sera_study.records import env_name
+    from sera_study.results import summary as summaries
+    from sera_study.runs import compare
 
     common, per_algo = compare.parse_params(args.hyperparams or [], args.algos)
     results = compare.run_comparison(
@@ -81,13 +82,13 @@ def _compare(args: argparse.Namespace) -> None:
         keep_checkpoints=args.keep_checkpoints,
         accept_older=args.accept_older,
     )
-    summary = f"{compare.summary(results, args.algos)}\n{compare.reading(results, args.algos)}"
+    summary = f"{summaries.summary(results, args.algos)}\n{summaries.reading(results, args.algos)}"
     _print_report(results, out=args.out, name=env_name(args.env), reps=args.reps, summary=summary)
 
 
 def _bench(args: argparse.Namespace) -> None:
-    from sera_study import bench
-    from sera_study.backends import default_threads
+    from sera_study.runs import bench
+    from sera_study.runs.backends import default_threads
 
     # Runs that share GPUs: as many at a time as the GPUs hold (execute counts them), each with one torch thread
     shared = args.gpus_per_run is not None
@@ -109,7 +110,7 @@ def _bench(args: argparse.Namespace) -> None:
 
 
 def _report(args: argparse.Namespace) -> None:
-    from sera_study import report
+    from sera_study.results import report
 
     path = report.report_roots(
         args.roots,
@@ -124,7 +125,7 @@ def _report(args: argparse.Namespace) -> None:
 
 
 def _ledger_add(args: argparse.Namespace) -> None:
-    from sera_study import intake
+    from sera_study.results import intake
 
     outcome = intake.add_runs(args.sources, args.ledger, unclaimed=args.unclaimed, below_budget=args.below_budget)
     for folder in outcome.added:
@@ -141,7 +142,7 @@ def _ledger_add(args: argparse.Namespace) -> None:
 
 
 def _ledger_report(args: argparse.Namespace) -> None:
-    from sera_study import ledger
+    from sera_study.results import ledger
 
     path = ledger.write_results(args.ledger, args.docs, reps=args.reps)
     print(f"Report: {path}{_figures(path)}\nResults block rewritten in {path.parent / ledger.RESULTS_PAGE}")
@@ -220,7 +221,7 @@ def _add_compare(commands: "argparse._SubParsersAction[argparse.ArgumentParser]"
     comp = commands.add_parser(
         "compare",
         help="train algorithms on one task for several seeds with hyperparams/<algo>.yml, then report them",
-        description=plain_text(module_doc("compare")),
+        description=plain_text(module_doc("runs.compare")),
         formatter_class=HelpFormatter,
     )
     comp.add_argument("--algos", nargs="+", default=list(defaults.DEFAULT_ALGOS), help="algorithm names")
@@ -257,7 +258,7 @@ def _add_bench(commands: "argparse._SubParsersAction[argparse.ArgumentParser]") 
     grid = commands.add_parser(
         "bench",
         help="run a grid of variants x tasks x seeds from a YAML file, locally or on Ray; resumes where it stopped",
-        description=plain_text(module_doc("bench")),
+        description=plain_text(module_doc("runs.bench")),
         formatter_class=HelpFormatter,
     )
     grid.add_argument("grid", help="the grid's YAML file")
@@ -283,7 +284,7 @@ def _add_report(commands: "argparse._SubParsersAction[argparse.ArgumentParser]")
     rep = commands.add_parser(
         "report",
         help="a Markdown report (IQM and bootstrap intervals, paper tables, figures) from rl-zoo3-style run folders",
-        description=plain_text(module_doc("report")),
+        description=plain_text(module_doc("results.report")),
         formatter_class=HelpFormatter,
     )
     rep.add_argument("roots", nargs="+", help="folders holding <variant>/<env_name>_<id>/ run folders")
@@ -301,7 +302,7 @@ def _add_ledger(commands: "argparse._SubParsersAction[argparse.ArgumentParser]")
     led = commands.add_parser(
         "ledger",
         help="the committed results ledger (results/): add finished runs, regenerate the README's results from it",
-        description=plain_text(module_doc("ledger")),
+        description=plain_text(module_doc("results.ledger")),
         formatter_class=HelpFormatter,
     )
     led_commands = led.add_subparsers(dest="ledger_command", required=True)
@@ -333,7 +334,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] in defaults.ZOO_COMMANDS:
         from sb3_sera.common.arguments import UnknownKeywordError
-        from sera_study import zoo
+        from sera_study.runs import zoo
 
         # rl-zoo3 parses these arguments itself: every zoo flag keeps working
         try:
@@ -347,7 +348,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     import yaml
 
     from sb3_sera.common.arguments import UnknownKeywordError
-    from sera_study.backends import Interrupted
+    from sera_study.runs.backends import Interrupted
 
     try:
         args.func(args)

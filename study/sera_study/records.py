@@ -10,7 +10,7 @@ the torch threads and device the run had, and each resume from a checkpoint: the
 after).
 
 This module names those folders and files and reads a finished run's records back (ours or rl-zoo3's) as a
-:class:`RunResult`; :mod:`sera_study.provenance` says which code and package versions ran.
+:class:`RunResult`; :mod:`sera_study.runs.provenance` says which code and package versions ran.
 """
 
 import json

@@ -12,12 +12,12 @@ from pathlib import Path
 
 import pytest
 
-from sera_study import backends
-from sera_study.backends import steps_before
-from sera_study.checkpoint import CHECKPOINT_DIR, STEP_FILE
-from sera_study.engine import PROGRESS_FILE
 from sera_study.records import RESULT_FILE
-from sera_study.specs import make_spec
+from sera_study.runs import backends
+from sera_study.runs.backends import steps_before
+from sera_study.runs.checkpoint import CHECKPOINT_DIR, STEP_FILE
+from sera_study.runs.engine import PROGRESS_FILE
+from sera_study.runs.specs import make_spec
 from study.tests.helpers import ctrl_c, killed_at_exit, start_command
 
 GRID = """
@@ -176,7 +176,7 @@ def test_on_ray_a_task_starts_only_for_a_run_left_to_make(tmp_path, monkeypatch)
 
 
 def test_the_progress_file_follows_the_steps_by_time_not_by_a_count(tmp_path, monkeypatch):
-    from sera_study import engine
+    from sera_study.runs import engine
 
     clock = iter([0.0, 0.3, 0.6, 1.2, 1.5, 2.4])
     monkeypatch.setattr(engine.time, "monotonic", lambda: next(clock))
@@ -193,7 +193,7 @@ def test_the_progress_file_follows_the_steps_by_time_not_by_a_count(tmp_path, mo
 
 def _notice_into(path: str) -> None:
     """A run worker's notice, its standard error a file (a log)."""
-    from sera_study.folders import notice
+    from sera_study.runs.folders import notice
 
     with open(path, "w") as log:
         sys.stderr = log

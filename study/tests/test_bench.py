@@ -6,10 +6,10 @@ from concurrent.futures import ProcessPoolExecutor
 
 import pytest
 
-from sera_study import backends, bench
 from sera_study.cli import main
-from sera_study.engine import cpu_model
-from sera_study.report import PAPER_NAMES, PAPER_RESULTS
+from sera_study.results.report import PAPER_NAMES, PAPER_RESULTS
+from sera_study.runs import backends, bench
+from sera_study.runs.engine import cpu_model
 from study.tests.helpers import tiny_grid
 from tests.helpers import ROOT
 

@@ -11,12 +11,12 @@ import torch as th
 from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_sera.common.device_buffer import DeviceReplayBuffer
-from sera_study import engine
-from sera_study.checkpoint import CHECKPOINT_DIR, _buffer_arrays, _restore_buffer, has_checkpoint
-from sera_study.folders import assign_folders
 from sera_study.records import load_result
 from sera_study.registry import algorithm_classes
-from sera_study.specs import make_spec
+from sera_study.runs import engine
+from sera_study.runs.checkpoint import CHECKPOINT_DIR, _buffer_arrays, _restore_buffer, has_checkpoint
+from sera_study.runs.folders import assign_folders
+from sera_study.runs.specs import make_spec
 from tests.common.test_device_buffer import ACTION, OBSERVATION, _fill
 from tests.helpers import CTDE_TASK
 
@@ -149,7 +149,7 @@ import sys
 from pathlib import Path
 from stable_baselines3.common.env_util import make_vec_env
 import sb3_sera  # the multi-agent task ids
-from sera_study.env_state import StateMismatch, capture, dump_data, load_data, restore
+from sera_study.runs.env_state import StateMismatch, capture, dump_data, load_data, restore
 step, order, path = sys.argv[1], sys.argv[2], Path(sys.argv[3])
 if order == "before":
     import rl_zoo3  # replaces Gymnasium's TimeLimit before MaMuJoCo wraps its inner env in it

@@ -12,10 +12,10 @@ import yaml
 from scipy import stats
 
 from sb3_sera.common.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
-from sera_study import claims, claims_text, measures
-from sera_study.declared import declaration, seen_before_lines
-from sera_study.report import group_runs, load_runs
-from sera_study.stats import benjamini_hochberg
+from sera_study.results import claims, claims_text, measures
+from sera_study.results.declared import declaration, seen_before_lines
+from sera_study.results.report import group_runs, load_runs
+from sera_study.results.stats import benjamini_hochberg
 
 
 def _claim_run(tmp_path: Path, variant: str, seed: int, mc_corr: float, finals: list[float]):

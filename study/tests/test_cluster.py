@@ -6,12 +6,12 @@ import time
 
 import pytest
 
-from sera_study import bench
-from sera_study.backends import check_gpu_share, gpu_slots
-from sera_study.checkpoint import checkpoint_step
 from sera_study.cli import main
-from sera_study.engine import ATTEMPTS_FILE
 from sera_study.records import load_result
+from sera_study.runs import bench
+from sera_study.runs.backends import check_gpu_share, gpu_slots
+from sera_study.runs.checkpoint import checkpoint_step
+from sera_study.runs.engine import ATTEMPTS_FILE
 from study.tests.helpers import assert_same_end, tiny_grid
 
 #: One pytest-xdist worker runs the file's Ray instances in turn; each starts its own (``"local"``: a ``ray.init()``

@@ -11,9 +11,11 @@ import torch as th
 import yaml
 
 import sb3_sera
-from sera_study import backends, compare, engine, registry, specs
+from sera_study import registry
 from sera_study.cli import main
 from sera_study.records import RunResult
+from sera_study.results import summary
+from sera_study.runs import backends, compare, engine, specs
 
 TINY = ["--seeds", "0", "-n", "240", "--eval-freq", "120", "--eval-episodes", "1", "--reps", "200"]
 
@@ -260,17 +262,17 @@ def _results(finals: dict[str, list[float]]) -> list:
 
 def test_the_summary_gives_the_difference_its_interval_and_a_decision_only_where_one_is_possible():
     # Two runs a side: 2 of the 6 splits are as extreme as any, so no p below 1/3 exists
-    short = compare.summary(_results({"serasac": [-200.0, -180.0], "sac": [-300.0, -250.0]}), ["serasac", "sac"])
+    short = summary.summary(_results({"serasac": [-200.0, -180.0], "sac": [-300.0, -250.0]}), ["serasac", "sac"])
     assert "  serasac  -190.0 ± 14.1 (2 run(s))\n  sac      -275.0 ± 35.4 (2 run(s))" in short
     assert "serasac - sac: +85.0, 95% Welch interval [" in short
     assert short.endswith("; too few runs to decide (smallest possible p 0.333 at 2 against 2)")
     # Six a side, fully apart: the two extreme splits of 924, 2/924
     finals = {"serasac": [-200.0 + i for i in range(6)], "sac": [-260.0 + 3 * i for i in range(6)]}
-    assert compare.summary(_results(finals), ["serasac", "sac"]).endswith("; p 0.00216: serasac ahead")
-    assert compare.summary(_results(finals), ["sac", "serasac"]).endswith("; p 0.00216: sac behind")
+    assert summary.summary(_results(finals), ["serasac", "sac"]).endswith("; p 0.00216: serasac ahead")
+    assert summary.summary(_results(finals), ["sac", "serasac"]).endswith("; p 0.00216: sac behind")
     # Undecided: the runs do not separate the two, which is not a finding that they are alike
     level = {"serasac": [-200.0, -210.0, -190.0, -205.0], "sac": [-201.0, -195.0, -211.0, -199.0]}
-    assert compare.summary(_results(level), ["serasac", "sac"]).endswith(": not separated (not a finding of no difference)")
+    assert summary.summary(_results(level), ["serasac", "sac"]).endswith(": not separated (not a finding of no difference)")
 
 
 def test_the_reading_says_what_the_runs_can_decide_and_where_a_real_comparison_is():
@@ -278,10 +280,10 @@ def test_the_reading_says_what_the_runs_can_decide_and_where_a_real_comparison_i
     for result in results:
         result.timesteps, result.returns = [1000, 2000, 4000, 6000], [-1200.0, *[result.final_return] * 3]
         result.hyperparams["learning_starts"] = 1000
-    text = compare.reading(results, ["serasac", "sac"])
+    text = summary.reading(results, ["serasac", "sac"])
     assert "Learning (mean evaluation return, first -> final): serasac -1200 at step 1,000 -> -190; sac -1200" in text
     # 2 runs a side: the smallest p is 1/3; 4 a side (2 of 70 splits: 0.029) is the fewest that can decide
-    assert compare.runs_to_decide() == 4
+    assert summary.runs_to_decide() == 4
     assert "2 run(s) a side cannot tell serasac from sac at p < 0.05" in text and "--seeds 0 1 2 3)" in text
     assert "each ended above its first evaluation, so these runs show that each trains" in text
     # A run that did not improve says so: the README's small HalfCheetah comparison (-1 -> -9 and -3 -> -7)
@@ -289,7 +291,7 @@ def test_the_reading_says_what_the_runs_can_decide_and_where_a_real_comparison_i
         result.returns = [first, *[-9.0 if result.variant == "serasac" else -7.0] * 3]
     for result in results:
         result.final_return = result.returns[-1]
-    text = compare.reading(results, ["serasac", "sac"])
+    text = summary.reading(results, ["serasac", "sac"])
     assert "serasac -1 at step 1,000 -> -9 (no better than its first evaluation); sac -3" in text
     assert "serasac and sac ended no better than their first evaluation, so these runs show no learning" in text
     assert "each trains" not in text
@@ -297,17 +299,17 @@ def test_the_reading_says_what_the_runs_can_decide_and_where_a_real_comparison_i
     # training, so nothing is said of learning (once: "each trains" of -24.85 -> -24.64)
     for result in results:
         result.timesteps, result.returns = [1000, 2000, 3000], [-24.85, -24.7, -24.64]
-    text = compare.reading(results, ["serasac", "sac"])
+    text = summary.reading(results, ["serasac", "sac"])
     assert "serasac and sac: too few evaluations after learning starts to tell whether they train" in text
     assert "Learning (" not in text and "each trains" not in text
     finals = {"serasac": [-200.0 + i for i in range(6)], "sac": [-260.0 + 3 * i for i in range(6)]}
-    assert "serasac ahead of sac on this task at 6,000 steps (p 0.00216)" in compare.reading(
+    assert "serasac ahead of sac on this task at 6,000 steps (p 0.00216)" in summary.reading(
         _results(finals), ["serasac", "sac"]
     )
     level = {"serasac": [-200.0, -210.0, -190.0, -205.0], "sac": [-201.0, -195.0, -211.0, -199.0]}
     assert (
         "These runs do not separate serasac from sac (not a finding of no difference): the interval allows"
-        in compare.reading(_results(level), ["serasac", "sac"])
+        in summary.reading(_results(level), ["serasac", "sac"])
     )
 
 

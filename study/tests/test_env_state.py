@@ -10,9 +10,10 @@ import pytest
 import torch as th
 from gymnasium.envs.classic_control.pendulum import PendulumEnv
 
-from sera_study import engine
-from sera_study.checkpoint import CHECKPOINT_DIR, checkpoint_dir, has_checkpoint
-from sera_study.env_state import (
+from sera_study.registry import algorithm_classes
+from sera_study.runs import engine
+from sera_study.runs.checkpoint import CHECKPOINT_DIR, checkpoint_dir, has_checkpoint
+from sera_study.runs.env_state import (
     StateMismatch,
     StateNotCapturable,
     capture,
@@ -21,9 +22,8 @@ from sera_study.env_state import (
     restore,
     state_difference,
 )
-from sera_study.folders import SET_ASIDE_FILE, assign_folders
-from sera_study.registry import algorithm_classes
-from sera_study.specs import make_spec
+from sera_study.runs.folders import SET_ASIDE_FILE, assign_folders
+from sera_study.runs.specs import make_spec
 
 
 class Part:

@@ -2,8 +2,8 @@
 
 import yaml
 
-from sera_study.identity import CODE_HASHES_FILE, configuration_key, identity_lines, load_code_hashes
-from sera_study.report import group_runs, load_runs
+from sera_study.results.identity import CODE_HASHES_FILE, configuration_key, identity_lines, load_code_hashes
+from sera_study.results.report import group_runs, load_runs
 from study.tests.test_report import fake_run
 
 

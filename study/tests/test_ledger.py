@@ -12,11 +12,12 @@ import pytest
 import yaml
 
 from sb3_sera.common.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
-from sera_study import bench, intake, ledger
-from sera_study.claims import ClaimResult, evaluate, load_claims, waits_for
-from sera_study.claims_text import claims_section
 from sera_study.records import read_record
-from sera_study.report import group_runs, load_runs
+from sera_study.results import intake, ledger
+from sera_study.results.claims import ClaimResult, evaluate, load_claims, waits_for
+from sera_study.results.claims_text import claims_section
+from sera_study.results.report import group_runs, load_runs
+from sera_study.runs import bench
 from study.tests.helpers import tiny_grid
 from tests.helpers import ROOT, table_cells
 

@@ -4,8 +4,8 @@ import pytest
 import torch as th
 from torch import nn
 
-from sera_study import engine, specs
-from sera_study.policy_kwargs import parse_policy_kwargs
+from sera_study.runs import engine, specs
+from sera_study.runs.policy_kwargs import parse_policy_kwargs
 
 
 def test_literals_dicts_and_known_names():

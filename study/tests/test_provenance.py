@@ -5,7 +5,7 @@ import ast
 from stable_baselines3 import SAC
 
 from sb3_sera import MASAC, SERASAC
-from sera_study.provenance import _code_text, code_difference, run_code_digest, run_code_modules
+from sera_study.runs.provenance import _code_text, code_difference, run_code_digest, run_code_modules
 
 CODE = '''
 def rate(x):
@@ -27,12 +27,12 @@ def test_a_run_digests_the_modules_its_algorithm_and_task_load_and_the_engine_al
     stock = run_code_modules(SAC, "Pendulum-v1")
     sera = run_code_modules(SERASAC, "Pendulum-v1")
     multi_agent = run_code_modules(MASAC, "sb3_sera/HalfCheetah-6x1-v0")
-    assert "sera_study.engine" in stock and "sera_study.env_state" in stock
+    assert "sera_study.runs.engine" in stock and "sera_study.runs.env_state" in stock
     # Stock SAC's runs do not hang on SERASAC's algorithm nor on the bookkeeping of folders and records
     assert "sb3_sera.sera.sera" not in stock and "sb3_sera.sera.sera" in sera
     # ... nor on SERA's aggregation, which the evaluations' critic diagnostics once imported for their correlations
     assert "sb3_sera.sera.aggregation" not in stock and "sb3_sera.common.correlation" in stock
-    assert not {"sb3_sera", "sera_study.folders", "sera_study.records"} & set(stock)
+    assert not {"sb3_sera", "sera_study.runs.folders", "sera_study.records"} & set(stock)
     assert {"sb3_sera.ctde.algorithms", "sb3_sera.ctde.tasks"} <= set(multi_agent) and "sb3_sera.sera.sera" not in multi_agent
     assert len({run_code_digest(SAC, "Pendulum-v1"), run_code_digest(SERASAC, "Pendulum-v1")}) == 2
 

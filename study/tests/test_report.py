@@ -9,14 +9,14 @@ from rliable import metrics
 from scipy import stats as scipy_stats
 
 from sb3_sera.common.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
-from sera_study import stats
 from sera_study.cli import main
-from sera_study.identity import commit_counts_line
-from sera_study.measures import bias_sign_line
 from sera_study.records import RunResult
-from sera_study.report import aligned, group_runs, load_runs, report_roots, write_report
-from sera_study.report.groups import RunGroup
-from sera_study.report.tables import resumed_lines
+from sera_study.results import stats
+from sera_study.results.groups import RunGroup
+from sera_study.results.identity import commit_counts_line
+from sera_study.results.measures import bias_sign_line
+from sera_study.results.report import aligned, group_runs, load_runs, report_roots, write_report
+from sera_study.results.report.tables import resumed_lines
 from tests.helpers import table_cells
 
 TASK = "sb3_sera/HalfCheetah-6x1-v0"
@@ -325,8 +325,8 @@ def test_runs_nested_deeper_than_the_root_are_found(tmp_path):
 
 
 def test_table_and_figure_intervals_are_computed_once():
-    from sera_study.report.figures import _draw_band
-    from sera_study.report.tables import iqm_cell
+    from sera_study.results.report.figures import _draw_band
+    from sera_study.results.report.tables import iqm_cell
 
     class Axes:
         """Records the band the figure draws."""
@@ -346,7 +346,7 @@ def test_table_and_figure_intervals_are_computed_once():
 
 
 def test_figures_draw_no_band_below_three_runs_and_say_why_a_panel_is_empty():
-    from sera_study.report.figures import _draw_band, _empty_reason, pyplot
+    from sera_study.results.report.figures import _draw_band, _empty_reason, pyplot
 
     fig, ax = pyplot().subplots()
     curve = ([1, 2, 3], [1.0, 2.0, 3.0])
@@ -402,7 +402,7 @@ def test_resumed_runs_are_listed_with_their_step_and_how_it_is_known():
 def test_a_curves_title_says_where_the_curves_end_when_before_the_budget():
     from types import SimpleNamespace
 
-    from sera_study.report.write import _curves_title
+    from sera_study.results.report.write import _curves_title
 
     group = SimpleNamespace(runs=[SimpleNamespace(timesteps=[1000, 2000, 3000, 4000])])
     assert _curves_title("HalfCheetah-v5", 4500, [group]) == "HalfCheetah-v5, 4,500-step runs (last evaluation at 4,000)"
@@ -410,8 +410,8 @@ def test_a_curves_title_says_where_the_curves_end_when_before_the_budget():
 
 
 def test_the_curves_at_the_papers_budget_carry_its_values(tmp_path, monkeypatch):
-    from sera_study.report import figures
-    from sera_study.report.write import _paper_points
+    from sera_study.results.report import figures
+    from sera_study.results.report.write import _paper_points
 
     for variant, algo, first_id in (("serasac", "serasac", 1), ("masac", "masac", 3), ("sac", "sac", 5)):
         for seed in range(2):

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from sera_study.backends import STOPPED_LOG
 from sera_study.records import load_result
+from sera_study.runs.backends import STOPPED_LOG
 from study.tests.helpers import assert_same_end, ctrl_c, killed_at_exit, start_command
 from tests.helpers import CTDE_TASK
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from sera_study.stats import (
+from sera_study.results.stats import (
     benjamini_hochberg,
     benjamini_yekutieli,
     decision_p_value,
@@ -94,7 +94,7 @@ def test_vectorized_bootstraps_agree_with_rliable():
     from rliable import library as rly
     from rliable import metrics
 
-    from sera_study.stats import iqm_interval, performance_profile, probability_of_improvement
+    from sera_study.results.stats import iqm_interval, performance_profile, probability_of_improvement
 
     rng = np.random.default_rng(1)
     reps = 4000

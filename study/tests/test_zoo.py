@@ -15,7 +15,7 @@ import yaml
 from sb3_sera import SERASAC
 from sera_study.cli import main
 from sera_study.registry import default_hyperparams
-from sera_study.zoo import (
+from sera_study.runs.zoo import (
     HYPERPARAMS_DIR,
     MULTI_AGENT_ALGOS,
     SINGLE_AGENT_ALGOS,

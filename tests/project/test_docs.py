@@ -60,8 +60,8 @@ class _Checked(Exception):
 
 @pytest.mark.parametrize("argv", RUN_COMMANDS, ids=[" ".join(argv[:3]) for argv in RUN_COMMANDS])
 def test_the_readme_run_commands_pass_every_check_before_their_runs(argv, monkeypatch, tmp_path):
-    from sera_study import bench, compare
     from sera_study.cli import main
+    from sera_study.runs import bench, compare
 
     def checked(specs, *args, **kwargs):
         raise _Checked(len(specs))

@@ -66,6 +66,28 @@ def test_lower_layers_never_import_upper_ones():
     assert not violations, "\n".join(sorted(violations))
 
 
+#: The study's rooms: a module may import its own room and lower ones only; "runs" makes run folders and "results" reads
+#: them, through the contract at the bottom (records, registry, defaults) alone, neither importing the other; the
+#: theory's report draws with the results' figures; the command line stands on top
+STUDY_LAYERS = {"records": 0, "registry": 0, "defaults": 0, "runs": 1, "results": 1, "theory": 2, "cli": 2, "__main__": 3}
+
+
+def test_the_studys_rooms_point_down_and_runs_and_results_keep_apart():
+    violations = []
+    for module, path in STUDY_MODULES.items():
+        own = subpackage(module)
+        if own is None:
+            continue  # sera_study/__init__.py
+        for imported in imports_of(path, ("sera_study",)):
+            other = subpackage(imported)
+            if other is None or other == own:
+                continue
+            if STUDY_LAYERS[other] >= STUDY_LAYERS[own]:
+                violations.append(f"{module} imports {imported}")
+    assert not violations, "\n".join(sorted(violations))
+    assert {subpackage(module) for module in STUDY_MODULES} - {None} == set(STUDY_LAYERS)
+
+
 def test_every_subpackage_has_a_layer():
     assert {subpackage(module) for module in MODULES} - {None} == set(LAYERS)
 

@@ -5,7 +5,7 @@ A claim (:class:`Claim`) names a task, a budget, a measure, two arms and the cla
 primary; a ledger declares its claims in ``results/claims.yml`` (:func:`load_claims`), and a report of other runs
 tests :func:`default_claims`, all exploratory. :func:`evaluate` decides them: only arms whose shared settings match
 are compared; the size is the difference of means with its 95% Welch t-interval; the test's p is the larger of the
-studentized permutation p and Welch's p (:func:`~sera_study.stats.decision_p_value`), so that no verdict
+studentized permutation p and Welch's p (:func:`~sera_study.results.stats.decision_p_value`), so that no verdict
 points where its interval does not. The primary claims' p-values are Holm-adjusted within their family (a declared
 primary claim not yet tested counts with p = 1), the exploratory claims' turned into Benjamini-Hochberg q-values over
 their exploratory family (all of them, but for claims declared in a family of their own; untested ones count with
@@ -30,10 +30,11 @@ from typing import Any
 import numpy as np
 import yaml
 
-from sera_study import stats
-from sera_study.measures import MEASURES
 from sera_study.records import RunResult
 from sera_study.registry import SHARED_SETTINGS, shared_settings, unmatched_settings, unmatched_text
+from sera_study.results import stats
+from sera_study.results.groups import RunGroup
+from sera_study.results.measures import MEASURES
 
 #: Runs each arm needs before its interval is given (a test needs as many as can give a p below its threshold)
 MIN_RUNS = 2
@@ -214,7 +215,7 @@ DEFAULT_CLAIMS = (
 )
 
 
-def default_claims(groups: Sequence[Any]) -> list[Claim]:
+def default_claims(groups: Sequence[RunGroup]) -> list[Claim]:
     """The :data:`DEFAULT_CLAIMS` whose two variants have runs at one task and budget among ``groups``."""
     present = {(group.variant, group.env_id, group.n_timesteps) for group in groups}
     claims = []
@@ -230,18 +231,20 @@ def default_claims(groups: Sequence[Any]) -> list[Claim]:
     return claims
 
 
-def group_settings(group: Any) -> dict[str, Any]:
+def group_settings(group: RunGroup) -> dict[str, Any]:
     """A report group's shared settings: :func:`~sera_study.registry.shared_settings` and evaluations."""
-    evaluation = {key: group.hyperparams[key] for key in ("eval_freq", "eval_episodes") if key in group.hyperparams}
+    evaluation: dict[str, Any] = {
+        key: group.hyperparams[key] for key in ("eval_freq", "eval_episodes") if key in group.hyperparams
+    }
     return {**shared_settings(group.algo, group.hyperparams), **evaluation}
 
 
-def group_studies(group: Any) -> set[str]:
+def group_studies(group: RunGroup) -> set[str]:
     """The shared settings every run of a report group recorded as studied by its comparison."""
     return set.intersection(*(set(run.studies) for run in group.runs)) if group.runs else set()
 
 
-def groups_unmatched(first: Any, second: Any, studied: Sequence[str] = ()) -> dict[str, dict[str, Any]]:
+def groups_unmatched(first: RunGroup, second: RunGroup, studied: Sequence[str] = ()) -> dict[str, dict[str, Any]]:
     """The shared settings two report groups differ in, but those both their comparisons studied and ``studied``."""
     settings = {first.label: group_settings(first), second.label: group_settings(second)}
     return unmatched_settings(settings, sorted(group_studies(first) & group_studies(second) | set(studied)))
@@ -278,7 +281,7 @@ class ClaimResult:
     withheld: bool = False
 
 
-def _matched_groups(claim: Claim, groups: Sequence[Any]) -> tuple[Any, Any, str]:
+def _matched_groups(claim: Claim, groups: Sequence[RunGroup]) -> tuple[RunGroup | None, RunGroup | None, str]:
     """The claim's two arms as report groups with the same shared settings, or (None, None, why not)."""
     arms = [g for g in groups if (g.variant, g.env_id, g.n_timesteps) == (claim.arm, claim.task, claim.n_timesteps)]
     baselines = [g for g in groups if (g.variant, g.env_id, g.n_timesteps) == (claim.baseline, claim.task, claim.n_timesteps)]
@@ -293,9 +296,9 @@ def _matched_groups(claim: Claim, groups: Sequence[Any]) -> tuple[Any, Any, str]
     return arm, baseline, (f"matched settings groups ({others} other group(s) left out)" if others else "")
 
 
-def evaluate(claims: Sequence[Claim], groups: Sequence[Any], alpha: float = ALPHA) -> list[ClaimResult]:
+def evaluate(claims: Sequence[Claim], groups: Sequence[RunGroup], alpha: float = ALPHA) -> list[ClaimResult]:
     """
-    Decide every claim on the report groups (:func:`~sera_study.report.groups.group_runs`): see the
+    Decide every claim on the report groups (:func:`~sera_study.results.groups.group_runs`): see the
     module's docstring.
     """
     sizes: dict[str, int] = {}
@@ -418,7 +421,7 @@ def _declared_rule(results: Sequence[ClaimResult], alpha: float) -> None:
 def declared_rule_verdict(result: ClaimResult, p_value: float, alpha: float = ALPHA) -> str:
     """
     The verdict of the rule ``results/claims.yml`` first declared, from ``p_value``: the raw-difference permutation
-    test's p (:func:`~sera_study.stats.raw_permutation_p_value`), Holm-adjusted over the family's tested
+    test's p (:func:`~sera_study.results.stats.raw_permutation_p_value`), Holm-adjusted over the family's tested
     claims for a primary claim, unadjusted for an exploratory one; supported below alpha on the claimed side,
     contradicted below alpha on the other, inconclusive otherwise.
     """

@@ -5,9 +5,9 @@ from typing import Any
 
 import numpy as np
 
-from sera_study import stats
-from sera_study.claims import ALPHA, ClaimResult, families
-from sera_study.measures import MEASURES, abs_bias, relative_bias, signed_bias
+from sera_study.results import stats
+from sera_study.results.claims import ALPHA, ClaimResult, families
+from sera_study.results.measures import MEASURES, abs_bias, relative_bias, signed_bias
 
 
 def _format(value: float | None) -> str:
@@ -116,7 +116,7 @@ def claims_legend(sizes: dict[str, int]) -> str:
         "contradicted when below alpha on the other side, inconclusive otherwise; too few runs to decide where the "
         "arms' sizes cannot give a p below the claim's threshold (alpha over its family's size for a primary claim, "
         f"alpha for an exploratory one). Only arms whose shared settings match are compared.{family} See "
-        "`study/sera_study/measures.py` for each measure."
+        "`study/sera_study/results/measures.py` for each measure."
     )
 
 

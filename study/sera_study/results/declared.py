@@ -11,9 +11,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from sera_study.claims import Claim, ClaimResult, evaluate
 from sera_study.records import RunResult
-from sera_study.report import group_runs
+from sera_study.results.claims import Claim, ClaimResult, evaluate
+from sera_study.results.report import group_runs
 
 
 @dataclass(frozen=True)

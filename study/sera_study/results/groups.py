@@ -11,9 +11,9 @@ from typing import Any
 
 import numpy as np
 
-from sera_study import stats
 from sera_study.records import RunResult
 from sera_study.registry import algorithm_default
+from sera_study.results import stats
 
 #: Variants in the order tables list them and colours are given (others follow, alphabetically)
 VARIANT_ORDER = (

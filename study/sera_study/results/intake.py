@@ -15,10 +15,10 @@ import numpy as np
 import yaml
 
 from sb3_sera.common.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
-from sera_study.claims import Claim
-from sera_study.ledger import CLAIMS_FILE, LEDGER_DIR, ledger_claims
 from sera_study.records import NPZ_ERRORS, RESULT_FILE, env_name, load_result, read_record, run_ids
-from sera_study.report import Skipped, run_folders
+from sera_study.results.claims import Claim
+from sera_study.results.ledger import CLAIMS_FILE, LEDGER_DIR, ledger_claims
+from sera_study.results.report import Skipped, run_folders
 
 #: A run's files the ledger keeps (the records folder's are added per task)
 RUN_FILES = ("evaluations.npz", BIAS_FILE, DIAGNOSTICS_FILE, RESULT_FILE)

@@ -1,15 +1,15 @@
 """
 Runs held back from the ledger's pages while a claim that plans them is interim: a table or figure of the arms' means
 would tell the interim state as surely as the claim's own numbers, so until each arm has its planned runs, the runs a
-planned claim reads, and those of every claim that waits with it (:func:`~sera_study.claims.waits_for`: its family
+planned claim reads, and those of every claim that waits with it (:func:`~sera_study.results.claims.waits_for`: its family
 sharing runs, or a claim sharing the runs of an arm it lacks), appear nowhere but in a count; a run that a claim
 printed meanwhile reads (a baseline's, printed before) stays.
 """
 
 from collections.abc import Sequence
 
-from sera_study.claims import Claim, waits_for
 from sera_study.records import RunResult
+from sera_study.results.claims import Claim, waits_for
 
 
 def held_back(claims: Sequence[Claim] | None, runs: Sequence[RunResult]) -> tuple[list[RunResult], list[str]]:

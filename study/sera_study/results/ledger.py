@@ -6,7 +6,7 @@ A ledger run keeps the run engine's layout (``results/<variant>/<env_name>_<id>/
 reads it) and only its records: ``<env_name>/config.yml`` and ``args.yml`` (with the git commit of the code that
 ran and whether its tree was clean), ``evaluations.npz``, ``initial_state_bias.npz``, ``critic_diagnostics.npz``,
 ``result.json`` and the monitor file; no model, replay buffer or TensorBoard events. The ledger only grows:
-:func:`~sera_study.intake.add_runs` copies finished runs in under new ids and refuses an unfinished run, a
+:func:`~sera_study.results.intake.add_runs` copies finished runs in under new ids and refuses an unfinished run, a
 run without its commit, a record that holds an absolute path, and a run the ledger already has (same algorithm,
 variant, task, budget, evaluation settings, hyperparameters and seed).
 
@@ -20,17 +20,17 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from sera_study.claims import Claim, ClaimResult, default_claims, evaluate, load_claims
-from sera_study.claims_text import claims_section, family_sizes
-from sera_study.declared import seen_before_lines
 from sera_study.defaults import DOCS_DIR, LEDGER_DIR, LEDGER_REPS
-from sera_study.identity import IDENTITY_CHECK, commit_counts_line, identity_lines, load_code_hashes
-from sera_study.interim import held_back
-from sera_study.measures import bias_sign_line
 from sera_study.records import RunResult, read_record
-from sera_study.report import RunGroup, Skipped, group_runs, load_runs, section_table, write_report
-from sera_study.report.tables import resumed_lines
-from sera_study.report.write import section_claims
+from sera_study.results.claims import Claim, ClaimResult, default_claims, evaluate, load_claims
+from sera_study.results.claims_text import claims_section, family_sizes
+from sera_study.results.declared import seen_before_lines
+from sera_study.results.identity import IDENTITY_CHECK, commit_counts_line, identity_lines, load_code_hashes
+from sera_study.results.interim import held_back
+from sera_study.results.measures import bias_sign_line
+from sera_study.results.report import RunGroup, Skipped, group_runs, load_runs, section_table, write_report
+from sera_study.results.report.tables import resumed_lines
+from sera_study.results.report.write import section_claims
 
 #: The claims a ledger declares, in its folder
 CLAIMS_FILE = "claims.yml"
@@ -112,7 +112,7 @@ def _read(ledger: "str | Path | LedgerResults") -> LedgerResults:
 def published_runs(ledger: str | Path = LEDGER_DIR) -> tuple[list[RunResult], list[Skipped], list[str]]:
     """
     The ledger's finished runs its pages show: every one but those an interim claim holds back
-    (:func:`~sera_study.interim.held_back`); the runs left out as unreadable; a line per holding claim.
+    (:func:`~sera_study.results.interim.held_back`); the runs left out as unreadable; a line per holding claim.
     """
     return _published(ledger, ledger_claims(ledger))
 
@@ -247,9 +247,9 @@ def write_results(ledger: str | Path = LEDGER_DIR, docs: str | Path = DOCS_DIR, 
         results.skipped,
         reps=reps,
         sources=[str(ledger)],
-        claims=results.claims,
         code_hashes=results.code_hashes,
-        claim_results=results.decided,
+        decided=results.decided,
+        groups=results.groups,
     )
     page = docs / RESULTS_PAGE
     block = results_block(results, reps)

@@ -43,8 +43,8 @@ from pathlib import Path
 import numpy as np
 
 from sb3_sera.common.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
-from sera_study import stats
 from sera_study.records import NPZ_ERRORS, RunResult
+from sera_study.results import stats
 
 
 def load_diagnostics(run: RunResult) -> dict[str, np.ndarray] | None:

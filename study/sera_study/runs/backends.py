@@ -23,11 +23,11 @@ from typing import Any
 
 from tqdm import tqdm
 
-from sera_study.checkpoint import checkpoint_step, has_checkpoint
-from sera_study.engine import PROGRESS_FILE, steps_done, train_one
-from sera_study.folders import assign_folders, output_lock
+from sera_study.runs.checkpoint import checkpoint_step, has_checkpoint
+from sera_study.runs.engine import PROGRESS_FILE, steps_done, train_one
+from sera_study.runs.folders import assign_folders, output_lock
 from sera_study.records import RESULT_FILE, RunResult, env_name, load_result
-from sera_study.specs import RunSpec
+from sera_study.runs.specs import RunSpec
 
 
 def default_threads(n_jobs: int) -> int:

@@ -29,12 +29,12 @@ from typing import Any
 
 import yaml
 
-from sera_study.backends import execute
-from sera_study.checkpoint import checkpoint_every
-from sera_study.engine import check_specs
+from sera_study.runs.backends import execute
+from sera_study.runs.checkpoint import checkpoint_every
+from sera_study.runs.engine import check_specs
 from sera_study.records import RunResult
 from sera_study.registry import algorithm_classes, check_task
-from sera_study.specs import RunSpec, check_matched, make_spec
+from sera_study.runs.specs import RunSpec, check_matched, make_spec
 
 GRID_KEYS = {"algorithms", "tasks", "seeds", "n_timesteps", "eval_freq", "eval_episodes", "hyperparams", "studies"}
 
@@ -175,7 +175,7 @@ def run_grid(
     Run a grid file's runs (see :func:`load_grid`).
 
     :param checkpoint_freq: steps between a run's checkpoints (0: none; None: :func:`.checkpoint_every`'s default): an
-        interrupted grid resumes each unfinished run from its last one (:mod:`~sera_study.checkpoint`)
+        interrupted grid resumes each unfinished run from its last one (:mod:`~sera_study.runs.checkpoint`)
     :param keep_checkpoints: keep a finished run's last checkpoint (removed by default)
     :param accept_older: why finished runs made by other code are read back (see :func:`.execute`)
     :param gpus_per_run: each run's share of a GPU, or whole GPUs (see :func:`.execute`; None: none shared)

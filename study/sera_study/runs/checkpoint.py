@@ -41,7 +41,7 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_sera.common.capabilities import as_the_model_sees
 from sera_study.defaults import CHECKPOINT_FREQ
-from sera_study.env_state import (
+from sera_study.runs.env_state import (
     StateNotCapturable,
     capture,
     check_round_trip,

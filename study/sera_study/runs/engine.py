@@ -30,9 +30,9 @@ from sb3_sera.common.capabilities import as_the_model_sees
 from sb3_sera.common.evaluation import InitialStateBiasCallback
 from sb3_sera.common.mujoco_log import route_mujoco_warnings
 from sb3_sera.ctde.env import STATE_KEY
-from sera_study.checkpoint import Checkpointer, has_checkpoint, load_checkpoint, remove_checkpoints
-from sera_study.folders import notice, set_aside
-from sera_study.policy_kwargs import parse_policy_kwargs
+from sera_study.runs.checkpoint import Checkpointer, has_checkpoint, load_checkpoint, remove_checkpoints
+from sera_study.runs.folders import notice, set_aside
+from sera_study.runs.policy_kwargs import parse_policy_kwargs
 from sera_study.records import (
     RESULT_FILE,
     RunResult,
@@ -46,7 +46,7 @@ from sera_study.records import (
     write_atomic,
 )
 from sera_study.registry import RUN_KEYS, algorithm_classes
-from sera_study.specs import RunSpec
+from sera_study.runs.specs import RunSpec
 
 #: The keys whose text value rl-zoo3 reads as a schedule (``lin_3e-4``: linear from 3e-4 to 0), as its train does
 SCHEDULE_KEYS = ("learning_rate", "clip_range", "clip_range_vf", "delta_std")

@@ -23,8 +23,8 @@ from typing import Any
 
 import yaml
 
-from sera_study.checkpoint import checkpoint_stamp, has_checkpoint
-from sera_study.provenance import code_difference
+from sera_study.runs.checkpoint import checkpoint_stamp, has_checkpoint
+from sera_study.runs.provenance import code_difference
 from sera_study.records import (
     RESULT_FILE,
     append_record,
@@ -37,7 +37,7 @@ from sera_study.records import (
     utc_stamp,
     write_atomic,
 )
-from sera_study.specs import RunSpec
+from sera_study.runs.specs import RunSpec
 
 
 def notice(message: str) -> None:

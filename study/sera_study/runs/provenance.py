@@ -19,7 +19,7 @@ import sb3_sera
 from sb3_sera.zoo import HYPERPARAMS_DIR
 
 #: The library's and the study's source folders, by package name
-PACKAGES = {"sb3_sera": Path(sb3_sera.__file__).resolve().parent, "sera_study": Path(__file__).resolve().parent}
+PACKAGES = {"sb3_sera": Path(sb3_sera.__file__).resolve().parent, "sera_study": Path(__file__).resolve().parents[1]}
 #: Packages whose versions each run records
 VERSIONED = ("sb3-sera", "stable-baselines3", "sb3-contrib", "rl-zoo3", "torch", "gymnasium", "gymnasium-robotics")
 
@@ -42,7 +42,7 @@ def source_revision() -> dict[str, Any]:
     an untracked module would): read from the repository this package is imported from; both None for an installed
     package outside a git checkout.
     """
-    root = Path(__file__).resolve().parents[2]
+    root = PACKAGES["sera_study"].parents[1]  # the checkout: study/sera_study's grandparent
 
     def git(*args: str) -> str | None:
         try:
@@ -78,21 +78,21 @@ def code_digest() -> str:
 #: The run engine's modules whose code shapes a run's numbers (the model built and trained, the evaluations and their
 #: diagnostics, the checkpoints a resumed run goes on from), whatever the algorithm
 RUN_MODULES = (
-    "sera_study.engine",
+    "sera_study.runs.engine",
     "sb3_sera.common.evaluation",
-    "sera_study.checkpoint",
-    "sera_study.env_state",
-    "sera_study.policy_kwargs",
+    "sera_study.runs.checkpoint",
+    "sera_study.runs.env_state",
+    "sera_study.runs.policy_kwargs",
 )
 #: Modules whose imports :func:`run_code_digest` does not follow and whose code it leaves out: the package's
 #: re-exports, and the bookkeeping of runs (names, folders, records, provenance), which never changes a number
 BOOKKEEPING = (
     "sb3_sera",
     "sera_study.registry",
-    "sera_study.folders",
+    "sera_study.runs.folders",
     "sera_study.records",
-    "sera_study.specs",
-    "sera_study.provenance",
+    "sera_study.runs.specs",
+    "sera_study.runs.provenance",
 )
 
 

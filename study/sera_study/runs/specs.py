@@ -10,8 +10,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from sera_study.checkpoint import CHECKPOINT_FREQ
-from sera_study.provenance import code_digest, package_versions, run_code_digest, source_revision
+from sera_study.runs.checkpoint import CHECKPOINT_FREQ
+from sera_study.runs.provenance import code_digest, package_versions, run_code_digest, source_revision
 from sera_study.records import plain
 from sera_study.registry import (
     SHARED_SETTINGS,
@@ -172,7 +172,7 @@ def make_spec(
     A run with the task's hyperparameters from ``hyperparams/<algo>.yml`` (see :func:`.default_hyperparams`), then
     ``overrides``; ``ValueError`` for a key ``algo`` does not take.
     """
-    from sera_study.zoo import check_algo_task
+    from sera_study.runs.zoo import check_algo_task
 
     check_algo_task(algo, env_id)
     defaults, source = default_hyperparams(algo, env_id)

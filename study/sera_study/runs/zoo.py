@@ -135,10 +135,10 @@ def _params_items(args: Sequence[str]) -> tuple[int, int]:
 def params_overrides(args: Sequence[str]) -> dict[str, Any]:
     """
     The ``-params key:value`` items of a zoo command line, read without executing them: ``policy_kwargs`` by
-    :func:`~sera_study.policy_kwargs.parse_policy_kwargs`, every other value as a Python literal or else
+    :func:`~sera_study.runs.policy_kwargs.parse_policy_kwargs`, every other value as a Python literal or else
     as the string itself (``lin_3e-4``); ``ValueError`` naming an item without a colon.
     """
-    from sera_study.policy_kwargs import parse_policy_kwargs, parse_value
+    from sera_study.runs.policy_kwargs import parse_policy_kwargs, parse_value
 
     start, end = _params_items(args)
     overrides: dict[str, Any] = {}

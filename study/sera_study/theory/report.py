@@ -7,7 +7,7 @@ import csv
 from collections.abc import Sequence
 from pathlib import Path
 
-from sera_study.report.figures import pyplot
+from sera_study.results.report.figures import pyplot
 from sera_study.theory.estimators import (
     DEFAULT_ALPHA,
     DEFAULT_TEMPERATURE,

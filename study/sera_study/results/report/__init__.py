@@ -15,12 +15,12 @@ K x K correlation matrices at one evaluation (Fig. 5). Several sections together
 aggregated over tasks and performance profiles.
 """
 
-from sera_study.report.figures import aligned
-from sera_study.report.groups import RunGroup, group_runs
-from sera_study.report.load import Skipped, load_runs, run_folders
-from sera_study.report.paper import PAPER_NAMES, PAPER_RESULTS
-from sera_study.report.tables import section_table
-from sera_study.report.write import next_report_folder, report_roots, write_report
+from sera_study.results.groups import RunGroup, group_runs
+from sera_study.results.report.figures import aligned
+from sera_study.results.report.load import Skipped, load_runs, run_folders
+from sera_study.results.report.paper import PAPER_NAMES, PAPER_RESULTS
+from sera_study.results.report.tables import section_table
+from sera_study.results.report.write import next_report_folder, report_roots, write_report
 
 __all__ = [
     "PAPER_NAMES",

@@ -10,11 +10,11 @@ from typing import Any
 
 import numpy as np
 
-from sera_study import stats
-from sera_study.report.figures import pyplot, save_figure
-from sera_study.report.groups import RunGroup, variant_rank
-from sera_study.report.paper import paper_reference
-from sera_study.report.tables import INTERVAL
+from sera_study.results import stats
+from sera_study.results.groups import RunGroup, variant_rank
+from sera_study.results.report.figures import pyplot, save_figure
+from sera_study.results.report.paper import paper_reference
+from sera_study.results.report.tables import INTERVAL
 
 
 def aggregate_section(

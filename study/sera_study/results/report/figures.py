@@ -14,11 +14,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from sera_study import stats
-from sera_study.measures import load_diagnostics
-from sera_study.report.groups import RunGroup
-from sera_study.report.paper import PAPER_NAMES, PAPER_STEPS
-from sera_study.report.tables import MIN_RUNS
+from sera_study.results import stats
+from sera_study.results.groups import RunGroup
+from sera_study.results.measures import load_diagnostics
+from sera_study.results.report.paper import PAPER_NAMES, PAPER_STEPS
+from sera_study.results.report.tables import MIN_RUNS
 
 #: Points of the common grid onto which curves evaluated at different steps are interpolated
 GRID_POINTS = 50
@@ -131,7 +131,7 @@ def plot_curves(
     """
     A per-run list (``returns`` or ``initial_state_bias``) against steps: IQM over each group's runs and its interval.
 
-    :param paper: per variant, the paper's (mean, std) at :data:`~sera_study.report.paper.PAPER_STEPS`, drawn there
+    :param paper: per variant, the paper's (mean, std) at :data:`~sera_study.results.report.paper.PAPER_STEPS`, drawn there
         as a marker with its std as a bar in the variant's colour
     :return: sentences on interpolated grids
     """

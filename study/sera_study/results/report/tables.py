@@ -9,12 +9,12 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from sera_study import stats
-from sera_study.claims import group_settings, groups_unmatched
 from sera_study.records import FINAL_EVALUATIONS
 from sera_study.registry import unmatched_settings, unmatched_text
-from sera_study.report.groups import RunGroup, differing_keys
-from sera_study.report.paper import PAPER_NAMES, PAPER_RESULTS, paper_value
+from sera_study.results import stats
+from sera_study.results.claims import group_settings, groups_unmatched
+from sera_study.results.groups import RunGroup, differing_keys
+from sera_study.results.report.paper import PAPER_NAMES, PAPER_RESULTS, paper_value
 
 #: The variant every other row is compared against
 REFERENCE = "serasac"

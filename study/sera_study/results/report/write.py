@@ -9,23 +9,23 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from sera_study import stats
-from sera_study.claims import Claim, ClaimResult, default_claims, evaluate
-from sera_study.claims_text import bias_lines, claims_section, family_sizes
-from sera_study.identity import IDENTITY_CHECK, identity_lines
 from sera_study.records import RunResult, env_name
-from sera_study.report.aggregate import aggregate_section
-from sera_study.report.figures import (
+from sera_study.results import stats
+from sera_study.results.claims import ClaimResult, default_claims, evaluate
+from sera_study.results.claims_text import bias_lines, claims_section, family_sizes
+from sera_study.results.groups import RunGroup, group_runs
+from sera_study.results.identity import IDENTITY_CHECK, identity_lines
+from sera_study.results.report.aggregate import aggregate_section
+from sera_study.results.report.figures import (
     plot_auc_bars,
     plot_correlation_matrices,
     plot_curves,
     plot_diagnostics,
     variant_colors,
 )
-from sera_study.report.groups import RunGroup, group_runs
-from sera_study.report.load import Skipped, load_runs
-from sera_study.report.paper import PAPER_STEPS, paper_value
-from sera_study.report.tables import section_notes, section_table
+from sera_study.results.report.load import Skipped, load_runs
+from sera_study.results.report.paper import PAPER_STEPS, paper_value
+from sera_study.results.report.tables import section_notes, section_table
 
 
 def _curves_title(env_id: str, budget: int, groups: Sequence[RunGroup]) -> str:
@@ -53,9 +53,9 @@ def write_report(
     matrix_step: int | None = None,
     sources: Sequence[str] = (),
     log: Callable[[str], None] | None = None,
-    claims: Sequence[Claim] | None = None,
     code_hashes: dict[str, dict[str, str]] | None = None,
-    claim_results: Sequence[ClaimResult] | None = None,
+    decided: Sequence[ClaimResult] | None = None,
+    groups: Sequence[RunGroup] | None = None,
 ) -> Path:
     """
     Write ``report.md`` and its figures into the folder ``out`` (see the module's docstring).
@@ -66,19 +66,19 @@ def write_report(
     :param matrix_step: the step whose correlation matrices are drawn (None: each run's last evaluation)
     :param sources: where the runs were read from, for the report's first line
     :param log: called with a line saying what the report is doing, section by section (None: silent)
-    :param claims: the declared claims to decide (a ledger's ``claims.yml``), the primary ones as one family; None:
-        each section's :func:`~sera_study.claims.default_claims`, all exploratory
-    :param code_hashes: a ledger's code hashes per commit (:mod:`~sera_study.identity`): each section says
+    :param code_hashes: a ledger's code hashes per commit (:mod:`~sera_study.results.identity`): each section says
         whether its groups' runs from several commits train the same
-    :param claim_results: claims decided elsewhere, shown as they are in place of deciding ``claims`` on ``runs``
-        (:func:`~sera_study.ledger.study_claims`: a task's claims adjusted with all of a ledger's)
+    :param decided: claims decided elsewhere (a ledger's, :func:`~sera_study.results.ledger.read_ledger`), shown as
+        they are; None: each section's :func:`~sera_study.results.claims.default_claims`, all exploratory, decided here
+    :param groups: ``runs`` grouped already (:func:`~sera_study.results.groups.group_runs`), so that they are grouped
+        once; None: grouped here
     :return: the path of ``report.md``
     """
     if not runs:
         raise ValueError("no finished runs to report")
     folder = Path(out)
     folder.mkdir(parents=True, exist_ok=True)
-    all_groups = group_runs(runs)
+    all_groups = list(groups) if groups is not None else group_runs(runs)
     colors = variant_colors([group.variant for group in all_groups])
     sections_by_key: dict[tuple[str, int], list[RunGroup]] = defaultdict(list)
     for group in all_groups:
@@ -86,11 +86,7 @@ def write_report(
     lines = ["# Results", ""]
     if sources:
         lines += [f"Runs read from: {', '.join(sources)}.", ""]
-    decided = (
-        list(claim_results)
-        if claim_results is not None
-        else evaluate(claims if claims is not None else default_claims(all_groups), all_groups)
-    )
+    decided = list(decided) if decided is not None else evaluate(default_claims(all_groups), all_groups)
     sizes = family_sizes(decided)
     if sizes:
         lines += ["## Primary claims", "", *claims_section([r for r in decided if r.claim.primary], sizes), ""]
