@@ -165,7 +165,7 @@ def masked_adam(
     Each parameter group's bias corrections are computed as one vector, and on a CPU the group is updated by torch's
     multi-tensor (``_foreach``) operations, which trace to a far smaller graph than an operation a parameter; elsewhere
     (CUDA, where torch 2.11's Inductor does not compile that form correctly) a parameter at a time (``multi_tensor``).
-    The float32 step sizes and corrections are torch's to the bit. Measured: ``docs/speed.md``, "The compiled step".
+    The float32 step sizes and corrections are torch's to the bit. Measured: ``docs/speed.md``, "Compiled against eager".
 
     :param grads: the gradient of each parameter, in the plan's order
     :param state: ``plan.state()``
