@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml study/pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -c constraints.txt torch $(if $(TORCH_INDEX_URL),--extra-index-url $(TORCH_INDEX_URL))
-	$(PY) -m pip install --quiet -c constraints.txt -e ".[extra,plots,dev,docs]" -e "./study[distributed,dev]"
+	$(PY) -m pip install --quiet -c constraints.txt -e ".[extra,zoo,plots,dev,docs]" -e "./study[distributed,dev]"
 	touch $(STAMP)
 
 install: $(STAMP)

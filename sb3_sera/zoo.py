@@ -10,7 +10,8 @@ holds their zoo files (``serasac.yml``, ``masac.yml``, ...). A training script o
     register()
     train()  # python train.py --algo serasac --env HalfCheetah-v5 --conf-file <HYPERPARAMS_DIR>/serasac.yml
 
-The study's ``sb3-sera train`` does this and passes the file itself.
+The study's ``sb3-sera train`` does this and passes the file itself. rl-zoo3 comes with the library's ``zoo`` extra,
+``pip install "sb3-sera[zoo]"``: importing this module does not need it, :func:`register` does.
 """
 
 from pathlib import Path
@@ -19,6 +20,7 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 
 from sb3_sera.ace import ACE
 from sb3_sera.common.capabilities import capabilities
+from sb3_sera.common.extras import needs_zoo_extra
 from sb3_sera.ctde.algorithms import MADDPG, MAPPO, MASAC, MATD3
 from sb3_sera.iet import IET
 from sb3_sera.sera import SERASAC
@@ -55,8 +57,11 @@ def register() -> None:
     Add :data:`ALGOS` to rl-zoo3's algorithm table (``rl_zoo3.utils.ALGOS``), and to its ``-optimize`` sampler and
     converter tables each algorithm's own search space (its ``tuning``) or that of the SB3 algorithm it tunes like
     (its ``tunes_like``); idempotent.
+
+    :raises ImportError: where rl-zoo3 is not installed (the ``zoo`` extra: ``pip install "sb3-sera[zoo]"``)
     """
-    from rl_zoo3 import hyperparams_opt, utils
+    with needs_zoo_extra("sb3_sera.zoo.register()"):
+        from rl_zoo3 import hyperparams_opt, utils
 
     utils.ALGOS.update(ALGOS)
     samplers, converters = hyperparams_opt.HYPERPARAMS_SAMPLER, hyperparams_opt.HYPERPARAMS_CONVERTER

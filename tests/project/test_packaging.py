@@ -53,6 +53,8 @@ def test_the_wheel_ships_the_hyperparameter_files_and_builds_without_deprecation
     # The license text and PEP 561's marker ship in the wheel
     assert f"sb3_sera-{__version__}.dist-info/licenses/LICENSE" in names and "sb3_sera/py.typed" in names
     assert "Provides-Extra: plots" in metadata and "rl_zoo3[plots]" in metadata
+    # rl-zoo3 is the zoo extra's, never a core dependency (tests/project/test_dependencies.py)
+    assert "Provides-Extra: zoo" in metadata and 'Requires-Dist: rl-zoo3<3,>=2.9.2; extra == "zoo"' in metadata
     assert "Deprecat" not in output, output
 
 
@@ -120,7 +122,7 @@ def test_make_install_takes_torch_from_torch_index_url_when_set():
     torch_install, package_install = make_install_commands(TORCH_INDEX_URL=cpu)
     assert torch_install.split()[-3:] == ["torch", "--extra-index-url", cpu]
     assert "-c constraints.txt" in torch_install and "index-url" not in package_install
-    assert '-e ".[extra,plots,dev,docs]" -e "./study[distributed,dev]"' in package_install
+    assert '-e ".[extra,zoo,plots,dev,docs]" -e "./study[distributed,dev]"' in package_install
     # Unset: pip's own configuration, no index flag
     torch_install, package_install = make_install_commands()
     assert torch_install.split()[-1] == "torch" and "index-url" not in torch_install + package_install
