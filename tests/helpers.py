@@ -321,6 +321,7 @@ def serasac_as_sac(env: Any, optimizer_kwargs: dict[str, Any] | None = None) -> 
         "MlpPolicy",
         env,
         seed=1,
+        learning_rate=3e-4,  # SB3's SAC's
         learning_starts=200,
         batch_size=64,
         target_aggregation="min",

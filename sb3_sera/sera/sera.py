@@ -66,8 +66,13 @@ from sb3_sera.sera.update import (
     entropy_target,
 )
 
-#: Learning rate of the actor and the entropy coefficient, as SB3's SAC
-DEFAULT_LEARNING_RATE = 3e-4
+#: Learning rate of the actor and the entropy coefficient: SERASAC's default, chosen by measurement with
+#: :data:`~sb3_sera.sera.step_size.DEFAULT_CRITIC_LR_MAX` (SB3's SAC and the paper use 3e-4:
+#: :data:`~sb3_sera.sera.sera.PAPER_RATES`)
+DEFAULT_LEARNING_RATE = 1e-3
+#: The paper's rates (Table 5 and appendix B.1.4), where SERASAC's defaults differ from the paper's configuration:
+#: ``SERASAC("MlpPolicy", env, **PAPER_RATES)`` is the paper's configuration (its other settings are the defaults)
+PAPER_RATES: dict[str, float] = {"learning_rate": 3e-4, "critic_lr_max": 5e-4}
 
 
 class SERASAC(NamedRuns, ChecksEnvSteps, Capabilities, CompiledUpdate, SAC):
@@ -81,15 +86,17 @@ class SERASAC(NamedRuns, ChecksEnvSteps, Capabilities, CompiledUpdate, SAC):
     Multi-Agent Reinforcement Learning"; every choice it leaves open is fixed in the project's ``docs/SPEC.md``.
 
     With ``policy_kwargs=dict(n_critics=2, net_arch=[256, 256])``, ``target_aggregation="min"``,
-    ``adaptive_critic_lr=False``, ``disagreement_coef=0`` and ``actor_aggregation="min"`` it computes the same
-    losses as SB3's SAC.
+    ``adaptive_critic_lr=False``, ``disagreement_coef=0``, ``actor_aggregation="min"`` and SAC's
+    ``learning_rate=3e-4`` it computes the same losses and updates as SB3's SAC. Its rates default to 1e-3, chosen by
+    measurement; ``**PAPER_RATES`` gives the paper's configuration.
 
     :param policy: The policy model to use (MlpPolicy, CnnPolicy, MultiInputPolicy)
     :param env: The environment to learn from (if registered in Gym, can be str)
     :param learning_rate: learning rate of Adam for the actor and the entropy coefficient, and for the critics
         only when ``adaptive_critic_lr=False`` and ``critic_learning_rate`` is None (with the adaptive step size
         the critics' rates come from ``critic_lr_max``; setting ``learning_rate`` alone warns); a float > 0 or a
-        schedule of the progress remaining (from 1 to 0)
+        schedule of the progress remaining (from 1 to 0); default 1e-3 (the paper's 3e-4:
+        :data:`~sb3_sera.sera.sera.PAPER_RATES`)
     :param buffer_size: size of the replay buffer
     :param learning_starts: how many steps of the model to collect transitions for before learning starts
     :param batch_size: Minibatch size ``S`` for each gradient update
@@ -122,7 +129,7 @@ class SERASAC(NamedRuns, ChecksEnvSteps, Capabilities, CompiledUpdate, SAC):
         loss: ``"median"`` (paper), ``"mean"`` or ``"min"``
     :param adaptive_critic_lr: use the variance-adaptive per-critic learning rate (False: *SERA-NoLR*)
     :param critic_lr_max: critic learning rate at full gain ``kappa = 1``: a float > 0 or a schedule of the
-        progress remaining; None: 5e-4 (paper appendix B.1.4)
+        progress remaining; None: 1e-3 (the paper's 5e-4, appendix B.1.4: :data:`~sb3_sera.sera.sera.PAPER_RATES`)
     :param kappa_min: floor of the rescaled gain, in [0, 1]; critic rates lie in
         ``[kappa_min * critic_lr_max, critic_lr_max]``
     :param kappa_eps: ``eta`` in ``kappa = P / (P + R + eta)``, > 0
@@ -163,7 +170,7 @@ class SERASAC(NamedRuns, ChecksEnvSteps, Capabilities, CompiledUpdate, SAC):
         self,
         policy: str | type[SERAPolicy],
         env: GymEnv | str,
-        learning_rate: float | Schedule = 3e-4,
+        learning_rate: float | Schedule = DEFAULT_LEARNING_RATE,
         buffer_size: int = 1_000_000,
         learning_starts: int = 100,
         batch_size: int = 256,

@@ -47,8 +47,9 @@ def kalman_gain(estimation_var: th.Tensor, measurement_var: th.Tensor, eps: floa
     return estimation_var / (estimation_var + measurement_var + eps)
 
 
-#: Critic learning rate at full gain ``kappa = 1`` (paper appendix B.1.4)
-DEFAULT_CRITIC_LR_MAX = 5e-4
+#: Critic learning rate at full gain ``kappa = 1``: SERASAC's default, chosen by measurement (the paper's is 5e-4,
+#: appendix B.1.4; :data:`~sb3_sera.sera.sera.PAPER_RATES`)
+DEFAULT_CRITIC_LR_MAX = 1e-3
 
 
 def critic_learning_rates(
@@ -57,7 +58,7 @@ def critic_learning_rates(
     """
     Map gains to learning rates ``lr_max * (kappa_min + (1 - kappa_min) * kappa)`` (paper eq. 16).
 
-    With the defaults, rates lie in ``[1e-4, 5e-4]``.
+    With the defaults, rates lie in ``[2e-4, 1e-3]``.
 
     :param kappa: gains in ``[0, 1]``
     :param lr_max: the learning rate at ``kappa = 1`` (a float or a scalar tensor)

@@ -16,6 +16,7 @@ from torch._dynamo.utils import counters
 
 from sb3_sera import SERASAC
 from sb3_sera.common.compiled import compile_step
+from sb3_sera.sera import PAPER_RATES
 from sb3_sera.sera.policies import CRITIC_ARCHS, HeterogeneousCritics
 from sb3_sera.sera.update import actor_value, actor_value_gathered
 from tests.helpers import ENV_ID, SMALL, assert_same_state, serasac_as_sac, snapshot
@@ -163,18 +164,23 @@ def test_learn_logs_diagnostics():
     assert -1.0 <= logged["train/critic_corr"] <= 1.0
 
 
-def test_adaptive_learning_rate_is_the_optimizer_step_size():
-    model = SERASAC("MlpPolicy", ENV_ID, seed=0, learning_rate=3e-4, **SMALL)
+@pytest.mark.parametrize(
+    "rates, lr_max, actor_lr",
+    [({}, 1e-3, 1e-3), (PAPER_RATES, 5e-4, 3e-4)],
+    ids=["defaults", "paper"],
+)
+def test_adaptive_learning_rate_is_the_optimizer_step_size(rates, lr_max, actor_lr):
+    model = SERASAC("MlpPolicy", ENV_ID, seed=0, **rates, **SMALL)
     model.learn(SMALL["learning_starts"])  # fills the buffer, no gradient step yet
     before = [[p.detach().clone() for p in q.parameters()] for q in model.critic.q_networks]
     model.train(gradient_steps=1, batch_size=32)
     logged = model.logger.name_to_value
     rates = [logged[f"train/critic_lr_{i}"] for i in range(5)]
     for i, rate in enumerate(rates):
-        # SB3's learning-rate update ran first (3e-4 everywhere), then each critic got its own rate
+        # SB3's learning-rate update ran first (the actor's rate everywhere), then each critic got its own rate
         assert model.critic.optimizer.param_groups[i]["lr"] == rate
-        assert rate == pytest.approx(5e-4 * (0.2 + 0.8 * logged[f"train/kappa_{i}"]), rel=1e-5)
-        assert 1e-4 <= rate <= 5e-4
+        assert rate == pytest.approx(lr_max * (0.2 + 0.8 * logged[f"train/kappa_{i}"]), rel=1e-5)
+        assert 0.2 * lr_max <= rate <= lr_max
         # Adam's first step moves each weight by about the learning rate: the rate is a real step size,
         # not a loss scale (which Adam would cancel)
         largest_move = max(
@@ -182,7 +188,7 @@ def test_adaptive_learning_rate_is_the_optimizer_step_size():
         )
         assert largest_move == pytest.approx(rate, rel=1e-3)
     assert len(set(rates)) > 1
-    assert model.actor.optimizer.param_groups[0]["lr"] == 3e-4
+    assert model.actor.optimizer.param_groups[0]["lr"] == actor_lr
 
 
 def test_fixed_critic_learning_rate_follows_schedule():

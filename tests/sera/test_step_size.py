@@ -29,12 +29,12 @@ def test_kalman_gain_and_learning_rate_range():
     assert rates.tolist() == pytest.approx([1e-4, 3e-4, 5e-4])
     kappa = kalman_gain(th.rand(1000) * 10, th.rand(1000) * 10)
     assert ((kappa >= 0) & (kappa < 1)).all()
-    rates = critic_learning_rates(kappa)
-    assert ((rates >= 1e-4 - 1e-12) & (rates <= 5e-4 + 1e-12)).all()
+    rates = critic_learning_rates(kappa)  # SERASAC's default critic_lr_max, 1e-3
+    assert ((rates >= 2e-4 - 1e-12) & (rates <= 1e-3 + 1e-12)).all()
 
 
 def test_state_updates_by_hand():
-    step_size = VarianceAdaptiveStepSize(2, td_variance_ema=0.9, estimation_variance_ema=0.9, kappa_eps=1e-8)
+    step_size = VarianceAdaptiveStepSize(2, td_variance_ema=0.9, estimation_variance_ema=0.9, kappa_eps=1e-8, lr_max=5e-4)
     # Batch 1: TD-error variances (1.25, 1.0), target deviation variances (0.25, 0.0)
     td_errors = th.tensor([[1.0, 0.0], [2.0, 0.0], [3.0, 2.0], [4.0, 2.0]])
     deviations = th.tensor([[0.0, 0.0], [1.0, 0.0], [0.0, 0.0], [1.0, 0.0]])
