@@ -19,7 +19,8 @@ is the median over blocks with the interquartile range; the ratio is the referen
 
 The names with a suffix are SERASAC compiled (``compile_update=True``), with DroQ's or CrossQ's critics, and with two
 gradient steps an environment step (``UTD2``): the configurations of issue 90's screen, whose other settings (learning
-rates, the entropy coefficient's start, ``learning_starts``) change no step's cost.
+rates, the entropy coefficient's start, ``learning_starts``) change no step's cost; ``-mean`` is compiled SERASAC with
+the Ensemble Mean target, the decision's other arm.
 """
 
 import argparse
@@ -48,6 +49,7 @@ ALGORITHMS: dict[str, Callable[..., OffPolicyAlgorithm]] = {
     "TQC": TQC,
     "CrossQ": CrossQ,
     "SERASAC-compiled": partial(SERASAC, compile_update=True),
+    "SERASAC-compiled-mean": partial(SERASAC, compile_update=True, target_aggregation="mean"),
     "SERASAC-DroQ": partial(SERASAC, compile_update=True, policy_kwargs=DROQ),
     "SERASAC-CrossQ": partial(SERASAC, compile_update=True, policy_kwargs=CROSSQ),
     "SERASAC-DroQ-UTD2": partial(SERASAC, compile_update=True, policy_kwargs=DROQ, gradient_steps=2),
