@@ -13,7 +13,7 @@ from sera_study.runs.engine import cpu_model
 from study.tests.helpers import tiny_grid
 from tests.helpers import ROOT
 
-GRIDS = ROOT / "benchmarks" / "grids"
+GRIDS = ROOT / "study" / "grids"
 
 GRID = tiny_grid("ensemble_mean: {algo: serasac, target_aggregation: mean}")
 

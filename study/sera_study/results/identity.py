@@ -1,6 +1,6 @@
 """
 Code identity of a ledger's runs: whether runs pooled in one group, made at different commits, ran code that trains
-the same. ``benchmarks/param_hashes.py --ledger-commits --write results/code_hashes.yml`` hashes each configuration
+the same. ``study/tools/param_hashes.py --ledger-commits --write results/code_hashes.yml`` hashes each configuration
 of the ledger (a variant on a task with its hyperparameters: :func:`configuration_key`) after a short seeded run at
 every commit the ledger names; :func:`identity_lines` reads that table for a report's groups.
 """

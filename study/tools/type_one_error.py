@@ -4,7 +4,7 @@ The type-I error of a claim's test (``sera_study.results.stats.decision_p_value`
 for skewed data (a centred gamma of shape 4, skewness 1), the larger spread on either arm; beside it, the studentized
 permutation test and Welch's t-test alone.
 
-    python benchmarks/type_one_error.py --trials 5000 --seed 12345
+    python study/tools/type_one_error.py --trials 5000 --seed 12345
 """
 
 import argparse

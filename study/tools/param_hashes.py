@@ -13,10 +13,10 @@ policy's parameters and buffers, of every optimizer's state, and of every array 
 print the same hash for a configuration train and evaluate it identically on this machine with these package
 versions.
 
-    OMP_NUM_THREADS=1 python benchmarks/param_hashes.py                      # the working tree, every configuration
-    OMP_NUM_THREADS=1 python benchmarks/param_hashes.py --ledger-commits     # the ledger's commits as well
-    OMP_NUM_THREADS=1 python benchmarks/param_hashes.py --ledger-commits --jobs 2 --write results/code_hashes.yml
-    OMP_NUM_THREADS=1 python benchmarks/param_hashes.py --ledger-commits --new-commits --write results/code_hashes.yml
+    OMP_NUM_THREADS=1 python study/tools/param_hashes.py                      # the working tree, every configuration
+    OMP_NUM_THREADS=1 python study/tools/param_hashes.py --ledger-commits     # the ledger's commits as well
+    OMP_NUM_THREADS=1 python study/tools/param_hashes.py --ledger-commits --jobs 2 --write results/code_hashes.yml
+    OMP_NUM_THREADS=1 python study/tools/param_hashes.py --ledger-commits --new-commits --write results/code_hashes.yml
 
 ``--ledger-commits`` checks out every commit the ledger's runs name into a temporary git worktree and hashes there
 (this script, run against that commit's package). ``--write`` stores the table in the ledger, where the report reads
@@ -42,7 +42,7 @@ import numpy as np
 import torch as th
 import yaml
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 #: Keys of a zoo entry that describe the run, not the algorithm's constructor
 RUN_KEYS = ("n_timesteps", "policy", "n_envs", "env_kwargs", "noise_type", "noise_std")
 #: The short run's schedule
