@@ -141,6 +141,9 @@ class RunResult:
     #: Each time it was resumed from a checkpoint: the step, when (UTC), and the code before and after (``result.json``;
     #: empty for a run never interrupted, or recorded before resumes were)
     resumes: list[dict[str, Any]] = field(default_factory=list)
+    #: Where each start of the run ran: host, CPU model and GPU name (``result.json``; empty for a run recorded before
+    #: runs named their CPU)
+    attempts: list[dict[str, Any]] = field(default_factory=list)
 
 
 def load_result(folder: Path) -> RunResult:
@@ -182,11 +185,13 @@ def load_result(folder: Path) -> RunResult:
     result_file = folder / RESULT_FILE
     wall_time = math.nan
     resumes: list[dict[str, Any]] = []
+    attempts: list[dict[str, Any]] = []
     if result_file.exists():
         try:
             result = json.loads(result_file.read_text())
             wall_time = float(result["wall_time_s"])
             resumes = list(result.get("resumes", []))
+            attempts = list(result.get("attempts", []))
         except (ValueError, KeyError, TypeError) as error:
             raise ValueError(f"{folder}: unreadable {RESULT_FILE} ({type(error).__name__}: {error})") from None
     try:
@@ -212,6 +217,7 @@ def load_result(folder: Path) -> RunResult:
         hyperparams=plain(hyperparams),
         folder=str(folder),
         resumes=resumes,
+        attempts=attempts,
         eval_freq=None if eval_freq is None else int(eval_freq),
         eval_episodes=None if eval_episodes is None else int(eval_episodes),
         studies=[str(key) for key in args.get("studies") or []],

@@ -13,7 +13,7 @@ from sera_study.cli import main
 from sera_study.records import RunResult
 from sera_study.results import stats
 from sera_study.results.groups import RunGroup
-from sera_study.results.identity import commit_counts_line
+from sera_study.results.identity import commit_counts_line, machines_line
 from sera_study.results.measures import bias_sign_line
 from sera_study.results.report import aligned, group_runs, load_runs, report_roots, write_report
 from sera_study.results.report.tables import resumed_lines
@@ -430,6 +430,24 @@ def test_the_curves_at_the_papers_budget_carry_its_values(tmp_path, monkeypatch)
     assert sorted(tuple(bar.lines[0].get_xydata()[0]) for bar in bars) == [(297_750, 5520), (302_250, 4500)]
     assert {bar.lines[0].get_color() for bar in bars} == {colors["serasac"], colors["masac"]}
     figures.pyplot().close(drawn[0])
+
+
+def test_the_ledgers_line_of_machines_is_read_from_the_runs_records(tmp_path):
+    root = tmp_path / "runs"
+    xeon, epyc, h200 = ({"host": "vm", "cpu": "Intel Xeon"}, {"host": "vm", "cpu": "AMD EPYC"}, {"cpu": "x", "gpu": "H200"})
+    for run_id, attempts in enumerate([[xeon], [xeon], [xeon, epyc], [h200], None], start=1):
+        folder = fake_run(root, "serasac", run_id, run_id, [0.0, 1.0, 2.0])
+        if attempts is not None:  # the last run was recorded before runs named their machine
+            (folder / "result.json").write_text(json.dumps({"wall_time_s": 10.0, "attempts": attempts}))
+    runs, _ = load_runs([root])
+    assert machines_line(runs) == (
+        "Where the 5 published runs ran, by their records: Intel Xeon (2); Intel Xeon and AMD EPYC (1); H200 (1); "
+        "1 recorded before runs named their CPU."
+    )
+    unrecorded = [run for run in runs if not run.attempts]
+    assert machines_line(unrecorded) == (
+        "None of the 1 published runs records the machine it ran on: all were made before runs named it."
+    )
 
 
 def test_the_ledgers_counts_of_commits_and_of_overestimating_runs_are_computed(tmp_path):

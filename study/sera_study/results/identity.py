@@ -95,3 +95,22 @@ def commit_counts_line(runs: Sequence[RunResult], hashes: dict[str, dict[str, st
         f"The {len(runs)} published runs come from {commits}, {len(by_commit) - len(unhashed)} of them hashed in "
         f"`{CODE_HASHES_FILE}`; the runs of the {len(unhashed)} not hashed, by commit: {named}."
     )
+
+
+def machines_line(runs: Sequence[RunResult]) -> str:
+    """
+    One sentence of where the runs ran, as each run's record says (``result.json``'s attempts: its GPU, else its CPU
+    model), so that no page names a machine from memory: the runs by machine, those that ran on several (a resumed run)
+    under each of their machines joined, and those recorded before runs named their CPU counted apart.
+    """
+    by_machine: dict[str, int] = {}
+    for run in runs:
+        machines = dict.fromkeys(str(a.get("gpu") or a.get("cpu")) for a in run.attempts if a.get("gpu") or a.get("cpu"))
+        label = " and ".join(machines) if machines else ""
+        by_machine[label] = by_machine.get(label, 0) + 1
+    unrecorded = by_machine.pop("", 0)
+    named = "; ".join(f"{machine} ({n})" for machine, n in sorted(by_machine.items(), key=lambda item: -item[1]))
+    if not named:
+        return f"None of the {len(runs)} published runs records the machine it ran on: all were made before runs named it."
+    older = f"; {unrecorded} recorded before runs named their CPU" if unrecorded else ""
+    return f"Where the {len(runs)} published runs ran, by their records: {named}{older}."

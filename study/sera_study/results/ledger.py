@@ -25,7 +25,13 @@ from sera_study.records import RunResult, read_record
 from sera_study.results.claims import Claim, ClaimResult, default_claims, evaluate, load_claims
 from sera_study.results.claims_text import claims_section, family_sizes
 from sera_study.results.declared import seen_before_lines
-from sera_study.results.identity import IDENTITY_CHECK, commit_counts_line, identity_lines, load_code_hashes
+from sera_study.results.identity import (
+    IDENTITY_CHECK,
+    commit_counts_line,
+    identity_lines,
+    load_code_hashes,
+    machines_line,
+)
 from sera_study.results.interim import held_back
 from sera_study.results.measures import bias_sign_line
 from sera_study.results.report import RunGroup, Skipped, group_runs, load_runs, section_table, write_report
@@ -189,7 +195,7 @@ def results_block(ledger: str | Path | LedgerResults = LEDGER_DIR, reps: int = L
             counts = ", ".join(f"{verdicts.count(v)} {v}" for v in dict.fromkeys(verdicts))
             lines += [f"Exploratory claims on these runs ({counts}): [report.md](report.md).", ""]
     if runs:
-        lines += [commit_counts_line(runs, results.code_hashes), "", bias_sign_line(runs), ""]
+        lines += [commit_counts_line(runs, results.code_hashes), "", machines_line(runs), "", bias_sign_line(runs), ""]
     if skipped:
         # Named inside the ledger, never by the absolute path of the machine that made the block
         folder = results.ledger
