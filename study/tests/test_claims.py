@@ -13,7 +13,7 @@ from scipy import stats
 
 from sb3_sera.common.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sera_study.results import claims, claims_text, measures
-from sera_study.results.declared import declaration, seen_before_lines
+from sera_study.results.declared import declaration, seen_before_lines, unseen_lines
 from sera_study.results.report import group_runs, load_runs
 from sera_study.results.stats import benjamini_hochberg
 
@@ -421,3 +421,38 @@ def test_a_claim_reads_the_runs_of_its_task_budget_arms_and_seeds():
     assert claim.reads(run)
     for change in ({"env_id": "Ant-v5"}, {"n_timesteps": 600}, {"variant": "ace"}, {"seed": 5}):
         assert not claim.reads(SimpleNamespace(**{**vars(run), **change})), change
+
+
+def test_a_claim_on_seen_runs_is_also_given_without_them_once_decided(tmp_path):
+    # The arm's seeds 0 and 1 end at 10 and 11 (seen under another name before the claim), seeds 2-4 at 2, 3 and 4;
+    # the baseline's five at 0, 1, 2, 3 and 4
+    for seed, final in enumerate([10.0, 11.0, 2.0, 3.0, 4.0]):
+        _claim_run(tmp_path, "fast", seed, 0.5, [final] * 3)
+    for seed in range(5):
+        _claim_run(tmp_path, "base", seed, 0.5, [float(seed)] * 3)
+    runs, _ = load_runs([tmp_path])
+    claim = claims.Claim("fast-return", "HalfCheetah-v5", 300, "final_return", "fast", "base", "higher", planned=5)
+    seen = [claims.Seen("fast", "HalfCheetah-v5", (0, 1), "screen")]
+    decided = claims.evaluate([claim], group_runs(runs))
+    # On every run the difference is 6 - 2 = 4; without the seen two, 3 - 2 = 1, three runs against five
+    assert decided[0].difference == pytest.approx(4.0)
+    (line,) = unseen_lines(decided, runs, seen)
+    assert line.startswith("- fast-return without fast's seeds 0 and 1 (seen as screen's): 3 against 5: 1 [")
+    # Another task's runs of the arm are not the seen ones; an interim claim shows nothing
+    assert unseen_lines(decided, runs, [claims.Seen("fast", "Hopper-v5", (0, 1), "screen")]) == []
+    interim = claims.evaluate([claim], group_runs([run for run in runs if (run.variant, run.seed) != ("fast", 4)]))
+    assert interim[0].verdict.startswith("interim") and unseen_lines(interim, runs, seen) == []
+
+
+@pytest.mark.parametrize(
+    "entry, message",
+    [
+        ({"arm": "fast", "task": "HalfCheetah-v5", "seeds": [0]}, "exactly \\['arm', 'task', 'seeds', 'as'\\]"),
+        ({"arm": "fast", "task": "HalfCheetah-v5", "seeds": "0-1", "as": "screen"}, "not a list of integers"),
+    ],
+)
+def test_bad_seen_entries_are_refused_naming_the_fields(tmp_path, entry, message):
+    path = tmp_path / "claims.yml"
+    path.write_text(yaml.safe_dump({"claims": [], "seen": [entry]}))
+    with pytest.raises(ValueError, match=message):
+        claims.load_seen(path)

@@ -198,6 +198,48 @@ def load_claims(path: str | Path) -> list[Claim]:
     return claims
 
 
+@dataclass(frozen=True)
+class Seen:
+    """
+    Runs of an arm that were seen, under another variant's name, before the claims that read them were declared
+    (``seen`` in a claims file): the same configuration, seeds and code, so the same bits. Each claim on the arm is
+    also given without them (:func:`~sera_study.results.declared.unseen_lines`); nothing of the claims changes.
+    """
+
+    #: The arm whose runs were seen, and the task they ran on
+    arm: str
+    task: str
+    #: Their seeds
+    seeds: tuple[int, ...]
+    #: The variant they were seen as
+    seen_as: str
+
+
+#: The fields of a ``seen`` entry
+SEEN_FIELDS = ("arm", "task", "seeds", "as")
+
+
+def load_seen(path: str | Path) -> list[Seen]:
+    """
+    The ``seen`` entries of a claims file (none where it has no ``seen``): each a mapping with :data:`SEEN_FIELDS`,
+    the seeds a list of integers; ``ValueError`` naming the entry and the field for anything else.
+    """
+    document = yaml.safe_load(Path(path).read_text())
+    entries = document.get("seen", []) if isinstance(document, dict) else []
+    if not isinstance(entries, list):
+        raise ValueError(f"{path}: 'seen' is not a list of mappings with {list(SEEN_FIELDS)}")
+    seen = []
+    for index, entry in enumerate(entries):
+        where = f"{path}: seen entry {index + 1}"
+        if not isinstance(entry, dict) or sorted(entry) != sorted(SEEN_FIELDS):
+            raise ValueError(f"{where}: {entry!r} is not a mapping with exactly {list(SEEN_FIELDS)}")
+        seeds = entry["seeds"]
+        if not isinstance(seeds, list) or not seeds or not all(isinstance(seed, int) for seed in seeds):
+            raise ValueError(f"{where}: seeds {seeds!r} is not a list of integers")
+        seen.append(Seen(str(entry["arm"]), str(entry["task"]), tuple(seeds), str(entry["as"])))
+    return seen
+
+
 #: The claims a report of any runs tests where they have the variants (all exploratory): measure, direction of
 #: SERA's against each baseline, the baselines, the paper's figure
 DEFAULT_CLAIMS = (

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from sera_study.records import RunResult
-from sera_study.results.claims import Claim, ClaimResult, evaluate
+from sera_study.results.claims import Claim, ClaimResult, Seen, evaluate
 from sera_study.results.report import group_runs
 
 
@@ -98,12 +98,37 @@ def seen_before_lines(results: Sequence[ClaimResult], runs: Sequence[RunResult],
 def _after(claim: Claim, runs: Sequence[RunResult]) -> str:
     """The claim decided on ``runs`` alone as a claim of its own (no family; interim until the runs it plans)."""
     alone = dataclasses.replace(claim, primary=False)
-    result = evaluate([alone], group_runs(list(runs)))[0]
+    return _decided(evaluate([alone], group_runs(list(runs)))[0])
+
+
+def _decided(result: ClaimResult) -> str:
+    """A claim's result in a few words: its runs, the difference with its Welch interval and p, or its verdict."""
     if result.difference is None:
         return f"{len(result.arm_values)} and {len(result.baseline_values)} runs: {result.verdict}"
     interval = f" [{_number(result.low)}, {_number(result.high)}]" if result.low is not None else ""
     p = f", p {result.p_value:.3g}" if result.p_value is not None else f" ({result.verdict})"
     return f"{len(result.arm_values)} against {len(result.baseline_values)}: {_number(result.difference)}{interval}{p}"
+
+
+def unseen_lines(results: Sequence[ClaimResult], runs: Sequence[RunResult], seen: Sequence[Seen]) -> list[str]:
+    """
+    A line for each decided claim whose arm has runs :class:`.Seen` before its declaration: the claim on the same runs
+    less those (unadjusted, no runs planned: the difference with its Welch interval and the decision p). Nothing for
+    a claim still interim or withheld, whose numbers the pages do not show yet.
+    """
+    lines = []
+    for result in results:
+        if result.withheld or result.difference is None:
+            continue
+        for entry in seen:
+            if (entry.arm, entry.task) != (result.claim.arm, result.claim.task):
+                continue
+            kept = [run for run in runs if (run.variant, run.env_id) != (entry.arm, entry.task) or run.seed not in entry.seeds]
+            alone = dataclasses.replace(result.claim, primary=False, planned=0)
+            without = _decided(evaluate([alone], group_runs(kept))[0])
+            seeds = " and ".join(str(seed) for seed in entry.seeds)
+            lines.append(f"- {result.claim.id} without {entry.arm}'s seeds {seeds} (seen as {entry.seen_as}'s): {without}")
+    return lines
 
 
 def _number(value: Any) -> str:

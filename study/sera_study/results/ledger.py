@@ -22,9 +22,9 @@ from pathlib import Path
 
 from sera_study.defaults import DOCS_DIR, LEDGER_DIR, LEDGER_REPS
 from sera_study.records import RunResult, read_record
-from sera_study.results.claims import Claim, ClaimResult, default_claims, evaluate, load_claims
+from sera_study.results.claims import Claim, ClaimResult, Seen, default_claims, evaluate, load_claims, load_seen
 from sera_study.results.claims_text import claims_section, family_sizes
-from sera_study.results.declared import seen_before_lines
+from sera_study.results.declared import seen_before_lines, unseen_lines
 from sera_study.results.identity import (
     IDENTITY_CHECK,
     commit_counts_line,
@@ -100,6 +100,8 @@ class LedgerResults:
     claims: list[Claim] | None
     decided: list[ClaimResult]
     code_hashes: dict[str, dict[str, str]] | None
+    #: Runs seen before their claims under another variant's name (``seen`` in ``claims.yml``)
+    seen: list[Seen]
 
 
 def read_ledger(ledger: str | Path = LEDGER_DIR) -> LedgerResults:
@@ -108,7 +110,10 @@ def read_ledger(ledger: str | Path = LEDGER_DIR) -> LedgerResults:
     shown, skipped, held = _published(ledger, claims)
     groups = group_runs(shown)
     decided = evaluate(claims if claims is not None else default_claims(groups), groups)
-    return LedgerResults(Path(ledger), shown, list(skipped), held, groups, claims, decided, load_code_hashes(ledger))
+    path = Path(ledger) / CLAIMS_FILE
+    seen = load_seen(path) if path.exists() else []
+    hashes = load_code_hashes(ledger)
+    return LedgerResults(Path(ledger), shown, list(skipped), held, groups, claims, decided, hashes, seen)
 
 
 def _read(ledger: "str | Path | LedgerResults") -> LedgerResults:
@@ -171,6 +176,15 @@ def results_block(ledger: str | Path | LedgerResults = LEDGER_DIR, reps: int = L
             "after alone):",
             "",
             *seen_before_lines(primary, runs, results.ledger),
+            "",
+        ]
+    unseen = unseen_lines(decided, runs, results.seen)
+    if unseen:
+        lines += [
+            f"Each claim on runs seen before its declaration under another variant's name (`seen` in `{CLAIMS_FILE}`), "
+            "also without them (unadjusted):",
+            "",
+            *unseen,
             "",
         ]
     for (env_id, budget), section in _sections(results.groups).items():
