@@ -132,17 +132,23 @@ def waits_for(claim: Claim, interim: Claim, lacking: Collection[str]) -> bool:
     return claim.family == interim.family or bool({claim.arm, claim.baseline} & set(lacking))
 
 
-def load_claims(path: str | Path) -> list[Claim]:
-    """
-    The claims a file declares (``results/claims.yml``: a mapping with ``claims``, a list of mappings with
-    :data:`CLAIM_FIELDS`); ``ValueError`` naming the claim and the field for anything else.
-    """
+def _claims_document(path: str | Path) -> dict[str, Any]:
+    """A claims file read: a mapping whose ``claims`` is a list; ``ValueError`` naming the file otherwise."""
     try:
         document = yaml.safe_load(Path(path).read_text())
     except yaml.YAMLError as error:
         raise ValueError(f"{path}: not YAML: {' '.join(str(error).split())}") from None
     if not isinstance(document, dict) or not isinstance(document.get("claims"), list):
         raise ValueError(f"{path}: a claims file is a mapping whose 'claims' is a list of claims")
+    return document
+
+
+def load_claims(path: str | Path) -> list[Claim]:
+    """
+    The claims a file declares (``results/claims.yml``: a mapping with ``claims``, a list of mappings with
+    :data:`CLAIM_FIELDS`); ``ValueError`` naming the claim and the field for anything else.
+    """
+    document = _claims_document(path)
     claims, seen = [], set()
     for index, entry in enumerate(document["claims"]):
         where = f"{path}: claim {index + 1}"
@@ -224,8 +230,7 @@ def load_seen(path: str | Path) -> list[Seen]:
     The ``seen`` entries of a claims file (none where it has no ``seen``): each a mapping with :data:`SEEN_FIELDS`,
     the seeds a list of integers; ``ValueError`` naming the entry and the field for anything else.
     """
-    document = yaml.safe_load(Path(path).read_text())
-    entries = document.get("seen", []) if isinstance(document, dict) else []
+    entries = _claims_document(path).get("seen", [])
     if not isinstance(entries, list):
         raise ValueError(f"{path}: 'seen' is not a list of mappings with {list(SEEN_FIELDS)}")
     seen = []

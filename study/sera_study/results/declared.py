@@ -76,8 +76,7 @@ def seen_before_lines(results: Sequence[ClaimResult], runs: Sequence[RunResult],
         if declared is None:
             rows.append(f"| {claim.id} | not committed, or no git history | | | |")
             continue
-        later = [run for run in runs if _run_name(run, folder) not in declared.runs]
-        after = _after(claim, later)
+        after = _alone(claim, [run for run in runs if _run_name(run, folder) not in declared.runs])
         counts = []
         for variant, now in ((claim.arm, len(result.arm_values)), (claim.baseline, len(result.baseline_values))):
             then = sum(
@@ -95,14 +94,12 @@ def seen_before_lines(results: Sequence[ClaimResult], runs: Sequence[RunResult],
     ]
 
 
-def _after(claim: Claim, runs: Sequence[RunResult]) -> str:
-    """The claim decided on ``runs`` alone as a claim of its own (no family; interim until the runs it plans)."""
-    alone = dataclasses.replace(claim, primary=False)
-    return _decided(evaluate([alone], group_runs(list(runs)))[0])
-
-
-def _decided(result: ClaimResult) -> str:
-    """A claim's result in a few words: its runs, the difference with its Welch interval and p, or its verdict."""
+def _alone(claim: Claim, runs: Sequence[RunResult], **changes: Any) -> str:
+    """
+    The claim, with ``changes``, decided on ``runs`` alone as a claim of its own (no family; interim until the runs it
+    plans), in a few words: its runs, the difference with its Welch interval and p, or its verdict.
+    """
+    result = evaluate([dataclasses.replace(claim, primary=False, **changes)], group_runs(list(runs)))[0]
     if result.difference is None:
         return f"{len(result.arm_values)} and {len(result.baseline_values)} runs: {result.verdict}"
     interval = f" [{_number(result.low)}, {_number(result.high)}]" if result.low is not None else ""
@@ -124,8 +121,7 @@ def unseen_lines(results: Sequence[ClaimResult], runs: Sequence[RunResult], seen
             if (entry.arm, entry.task) != (result.claim.arm, result.claim.task):
                 continue
             kept = [run for run in runs if (run.variant, run.env_id) != (entry.arm, entry.task) or run.seed not in entry.seeds]
-            alone = dataclasses.replace(result.claim, primary=False, planned=0)
-            without = _decided(evaluate([alone], group_runs(kept))[0])
+            without = _alone(result.claim, kept, planned=0)
             seeds = " and ".join(str(seed) for seed in entry.seeds)
             lines.append(f"- {result.claim.id} without {entry.arm}'s seeds {seeds} (seen as {entry.seen_as}'s): {without}")
     return lines
