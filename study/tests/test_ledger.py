@@ -13,7 +13,7 @@ import yaml
 
 from sb3_sera.common.evaluation import BIAS_FILE, DIAGNOSTICS_FILE
 from sera_study.records import read_record
-from sera_study.results import intake, ledger
+from sera_study.results import intake, ledger, readings
 from sera_study.results.claims import ClaimResult, evaluate, load_claims, waits_for
 from sera_study.results.claims_text import claims_section
 from sera_study.results.report import group_runs, load_runs
@@ -143,7 +143,13 @@ def test_report_regenerates_the_results_page_and_the_report(bench_out, tmp_path,
     ledger.write_results(results, docs)
     page = (docs / ledger.RESULTS_PAGE).read_text()
     assert page.startswith("# Results\n\nRead me.\n\n") and page.endswith("\n\nAnd me.\n") and "stale" not in page
-    with pytest.raises(ValueError, match=r"index\.md has no results block"):
+    # Readings beside the claims get the ledger's numbers, between their own markers on the page
+    (results / readings.READINGS_FILE).write_text("- SAC ran {{runs: sac | Pendulum-v1 | 200 | count}} time.\n")
+    (docs / ledger.RESULTS_PAGE).write_text(f"{page}\n{readings.BEGIN}\nstale\n{readings.END}\n")
+    ledger.write_results(results, docs)
+    page = (docs / ledger.RESULTS_PAGE).read_text()
+    assert f"{readings.BEGIN}\n\n- SAC ran 1 time.\n\n{readings.END}" in page and "stale" not in page
+    with pytest.raises(ValueError, match=r"index\.md has no generated block"):
         ledger.replace_block("no markers", "block", "index.md")
 
 
@@ -151,7 +157,11 @@ def test_the_results_page_is_what_the_ledger_gives_today():
     # Every number between the ledger markers of the docs' results page is regenerated from results/ by
     # `sb3-sera ledger report`
     page = (ROOT / ledger.DOCS_DIR / ledger.RESULTS_PAGE).read_text()
-    assert ledger.current_block(page) == ledger.results_block(ROOT / "results")
+    results = ledger.read_ledger(ROOT / "results")
+    assert ledger.current_block(page) == ledger.results_block(results)
+    # ... and every number of its readings, filled in from results/readings.md
+    markers = (readings.BEGIN, readings.END)
+    assert ledger.current_block(page, markers) == ledger.readings_block(results)
 
 
 NUMBER = r"[+-]?\d[\d,]*(?:\.\d+)?"
@@ -242,29 +252,21 @@ def test_unprinted_finds_a_figure_the_ledger_does_not_give():
 
 
 def test_the_readings_quote_only_intervals_and_q_values_the_ledger_prints():
-    # The hand-written readings, the README's headline and the results page's ("What the ledger says"),
-    # quote differences with their intervals: each must be one the ledger gives today (a claim of any family, or a
-    # claim on the runs added after its declaration), at the precision quoted. The results page's generated block
-    # (the ledger's today: test above) holds the primary claims and the seen-before table; the exploratory claims are
-    # decided here
+    # The README's headline is written by hand: each difference with its interval it quotes must be one the ledger
+    # gives today (a claim of any family, or a claim on the runs added after its declaration), at the precision
+    # quoted, and each q-value the one of the claim it names. The results page's readings quote none by hand: their
+    # words (results/readings.md) hold placeholders that the ledger fills (the test above)
     results = ROOT / "results"
     runs, _ = load_runs([results])
     decided = evaluate(ledger.ledger_claims(results) or [], group_runs(runs))
     results_page = (ROOT / ledger.DOCS_DIR / ledger.RESULTS_PAGE).read_text()
     printed = "\n".join(claims_section(decided)) + ledger.current_block(results_page)
     readme = _section((ROOT / "README.md").read_text(), "## Results")
-    page = _section(results_page, "## What the ledger says")
-    assert INTERVAL.search(readme) and INTERVAL.search(page)
-    assert _unprinted(readme, printed) == []
-    assert _unprinted(page, printed) == []
-    # Their q-values too, each one of the exploratory claims' today (the revision notes above the readings quote the
-    # values they replaced)
-    readings = page[page.index("\n- ") :]
-    assert QVALUE.search(readings) and _unprinted_q_values(readings, printed) == []
+    assert INTERVAL.search(readme) and _unprinted(readme, printed) == []
     assert _unprinted_q_values(readme, printed) == []
-    # ... and each the q-value of the claim it names (its id in backticks before it in its bullet)
-    assert _misattributed_q_values(readings, decided) == []
     assert _misattributed_q_values(readme, decided) == []
+    words = readings.PLACEHOLDER.sub("", (results / readings.READINGS_FILE).read_text())
+    assert not INTERVAL.search(words) and not QVALUE.search(words)
 
 
 def test_misattributed_finds_a_q_value_of_another_claim():

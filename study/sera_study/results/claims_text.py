@@ -10,13 +10,15 @@ from sera_study.results.claims import ALPHA, ClaimResult, families
 from sera_study.results.measures import MEASURES, abs_bias, relative_bias, signed_bias
 
 
-def _format(value: float | None) -> str:
+def format_number(value: float | None) -> str:
+    """A number as the claims tables print it: 3 significant digits below 1000, whole above (empty for None)."""
     if value is None:
         return ""
     return f"{value:.3g}" if abs(value) < 1000 else f"{value:.0f}"
 
 
-def _p_text(value: float | None) -> str:
+def p_text(value: float | None) -> str:
+    """A p- or q-value as the claims tables print it: 4 decimals, or ``< 0.0001`` (empty for None)."""
     return "" if value is None else f"{value:.4f}" if value >= 0.0001 else "< 0.0001"
 
 
@@ -36,22 +38,22 @@ def claims_table(results: Sequence[ClaimResult], primary: bool) -> list[str]:
     for result in results:
         claim, measure = result.claim, MEASURES[result.claim.measure]
         interval = (
-            f"{_format(result.difference)} [{_format(result.low)}, {_format(result.high)}]"
+            f"{format_number(result.difference)} [{format_number(result.low)}, {format_number(result.high)}]"
             if result.low is not None
-            else _format(result.difference)
+            else format_number(result.difference)
         )
         shown = not result.withheld
-        arm_mean = _format(float(result.arm_values.mean())) if shown and len(result.arm_values) else ""
-        base_mean = _format(float(result.baseline_values.mean())) if shown and len(result.baseline_values) else ""
+        arm_mean = format_number(float(result.arm_values.mean())) if shown and len(result.arm_values) else ""
+        base_mean = format_number(float(result.baseline_values.mean())) if shown and len(result.baseline_values) else ""
         verdict = result.verdict + (f" ({result.note})" if result.note else "")
         if rests_on_bh_alone(result):
-            verdict += f" (BH alone: BY q {_p_text(result.by_q)})"
-        q_values = _p_text(result.adjusted_p) + ("" if primary else f" | {_p_text(result.by_q)}")
+            verdict += f" (BH alone: BY q {p_text(result.by_q)})"
+        q_values = p_text(result.adjusted_p) + ("" if primary else f" | {p_text(result.by_q)}")
         lines.append(
             f"| {claim.id}: SERA {claim.direction} | {claim.source} | {measure.text} "
             f"| {'paper' if measure.paper_units else 'scale-free'} | {claim.baseline} "
             f"| {len(result.arm_values)} vs {len(result.baseline_values)} | {arm_mean} | {base_mean} | {interval} "
-            f"| {_p_text(result.welch_p)} | {_p_text(result.permutation_p)} | {q_values} | {verdict} |"
+            f"| {p_text(result.welch_p)} | {p_text(result.permutation_p)} | {q_values} | {verdict} |"
         )
     return lines
 
@@ -79,7 +81,7 @@ def declared_rule_lines(results: Sequence[ClaimResult]) -> list[str]:
         lines.append("")
         lines += [
             f"- {result.claim.id}: {result.declared_verdict} under the first rule (raw permutation p "
-            f"{_p_text(result.declared_p)}{'' if result.claim.primary else ', unadjusted'}), {result.verdict} under "
+            f"{p_text(result.declared_p)}{'' if result.claim.primary else ', unadjusted'}), {result.verdict} under "
             "the rule in force"
             for result in differing
         ]

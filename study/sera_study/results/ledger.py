@@ -12,7 +12,9 @@ variant, task, budget, evaluation settings, hyperparameters and seed).
 
 :func:`write_results` regenerates, from the ledger alone, the full report with its figures in ``docs/results/``
 and the results page of the docs (``docs/results/index.md``: every table, in the Markdown between
-``<!-- ledger:begin -->`` and ``<!-- ledger:end -->``); :func:`results_block` is what a test compares it against.
+``<!-- ledger:begin -->`` and ``<!-- ledger:end -->``, and the readings of ``results/readings.md`` with the ledger's
+numbers filled in, between ``<!-- readings:begin -->`` and ``<!-- readings:end -->``); :func:`results_block` and
+:func:`readings_block` are what a test compares them against.
 """
 
 import os
@@ -34,6 +36,9 @@ from sera_study.results.identity import (
 )
 from sera_study.results.interim import held_back
 from sera_study.results.measures import bias_sign_line
+from sera_study.results.readings import BEGIN as READINGS_BEGIN
+from sera_study.results.readings import END as READINGS_END
+from sera_study.results.readings import READINGS_FILE, fill_readings
 from sera_study.results.report import RunGroup, Skipped, group_runs, load_runs, section_table, write_report
 from sera_study.results.report.tables import resumed_lines
 from sera_study.results.report.write import section_claims
@@ -231,27 +236,45 @@ def _commit(run: RunResult) -> str:
     return commit if args.get("git_clean", True) else f"{commit}, modified tree"
 
 
-def replace_block(text: str, block: str, name: str) -> str:
-    """``text`` (the page ``name``) with its generated results replaced by ``block``; ``ValueError`` without the
-    markers."""
-    start, end = text.find(BEGIN), text.find(END)
-    if start < 0 or end < start:
-        raise ValueError(f"{name} has no results block: add a line {BEGIN} and, below it, a line {END}")
-    return text[:start] + block + text[end + len(END) :]
+def replace_block(text: str, block: str, name: str, markers: tuple[str, str] = (BEGIN, END)) -> str:
+    """``text`` (the page ``name``) with its generated block between ``markers`` (the results' by default) replaced by
+    ``block``, which holds the markers; ``ValueError`` without them."""
+    begin, end = markers
+    start, stop = text.find(begin), text.find(end)
+    if start < 0 or stop < start:
+        raise ValueError(f"{name} has no generated block: add a line {begin} and, below it, a line {end}")
+    return text[:start] + block + text[stop + len(end) :]
 
 
-def current_block(text: str) -> str:
-    """The generated results of ``text`` (the results page) as they stand."""
-    start, end = text.find(BEGIN), text.find(END)
-    if start < 0 or end < start:
-        raise ValueError(f"the text has no results block between {BEGIN} and {END}")
-    return text[start : end + len(END)]
+def current_block(text: str, markers: tuple[str, str] = (BEGIN, END)) -> str:
+    """The generated block of ``text`` (the results page) between ``markers`` (the results' by default), as it
+    stands."""
+    begin, end = markers
+    start, stop = text.find(begin), text.find(end)
+    if start < 0 or stop < start:
+        raise ValueError(f"the text has no generated block between {begin} and {end}")
+    return text[start : stop + len(end)]
+
+
+def readings_block(ledger: str | Path | LedgerResults = LEDGER_DIR) -> str | None:
+    """
+    The results page's readings (``<ledger>/readings.md`` with the ledger's numbers filled in:
+    :func:`~sera_study.results.readings.fill_readings`) between their markers, or None where the ledger has no
+    readings.
+    """
+    results = _read(ledger)
+    template = results.ledger / READINGS_FILE
+    if not template.exists():
+        return None
+    filled = fill_readings(template.read_text(), results.decided, results.groups)
+    return f"{READINGS_BEGIN}\n\n{filled.strip()}\n\n{READINGS_END}"
 
 
 def write_results(ledger: str | Path = LEDGER_DIR, docs: str | Path = DOCS_DIR, reps: int = LEDGER_REPS) -> Path:
     """
-    Regenerate ``docs/results/`` from the ledger: ``report.md`` and every figure, and the generated block of the
-    results page ``index.md`` (a page holding only that block where there is none yet).
+    Regenerate ``docs/results/`` from the ledger: ``report.md`` and every figure, and the generated blocks of the
+    results page ``index.md``: the tables, and the readings where the ledger has them (a page holding only these
+    where there is none yet).
 
     :return: the report
     """
@@ -272,6 +295,11 @@ def write_results(ledger: str | Path = LEDGER_DIR, docs: str | Path = DOCS_DIR, 
         groups=results.groups,
     )
     page = docs / RESULTS_PAGE
-    block = results_block(results, reps)
-    page.write_text(replace_block(page.read_text(), block, str(page)) if page.exists() else f"# Results\n\n{block}\n")
+    block, readings = results_block(results, reps), readings_block(results)
+    if not page.exists():
+        page.write_text(f"# Results\n\n{block}\n" + (f"\n{READINGS_BEGIN}\n{READINGS_END}\n" if readings else ""))
+    text = replace_block(page.read_text(), block, str(page))
+    if readings is not None:
+        text = replace_block(text, readings, str(page), (READINGS_BEGIN, READINGS_END))
+    page.write_text(text)
     return report
