@@ -16,6 +16,7 @@ from sera_study.results import claims, claims_text, measures
 from sera_study.results.declared import declaration, seen_before_lines, unseen_lines
 from sera_study.results.report import group_runs, load_runs
 from sera_study.results.stats import benjamini_hochberg
+from tests.helpers import ROOT
 
 
 def _claim_run(tmp_path: Path, variant: str, seed: int, mc_corr: float, finals: list[float]):
@@ -347,6 +348,23 @@ def test_claims_files_are_checked(tmp_path, entry, message):
     path.write_text(yaml.safe_dump({"claims": [valid, valid]}))
     with pytest.raises(ValueError, match="claim 'a': the id is declared twice"):
         claims.load_claims(path)
+
+
+def test_claims_after_planned_after_must_plan_their_runs(tmp_path):
+    # CrossQ's claims, planned nowhere, were decided as each run arrived; from the claim the file names on, each plans
+    entry = {"task": "T", "n_timesteps": 1, "measure": "auc", "arm": "x", "baseline": "y", "direction": "higher"}
+    old, planned, unplanned = {"id": "old", **entry}, {"id": "new", "planned": 5, **entry}, {"id": "late", **entry}
+    path = tmp_path / "claims.yml"
+    path.write_text(yaml.safe_dump({"planned_after": "old", "claims": [old, planned]}))
+    assert [claim.planned for claim in claims.load_claims(path)] == [0, 5]
+    path.write_text(yaml.safe_dump({"planned_after": "old", "claims": [old, planned, unplanned]}))
+    with pytest.raises(ValueError, match="claim 'late' plans no runs: every claim declared after 'old' says how many"):
+        claims.load_claims(path)
+    path.write_text(yaml.safe_dump({"planned_after": "gone", "claims": [old]}))
+    with pytest.raises(ValueError, match="planned_after 'gone' is not the id of one of its claims"):
+        claims.load_claims(path)
+    # The ledger's own file names the rule's place
+    assert yaml.safe_load((ROOT / "results" / "claims.yml").read_text())["planned_after"] == "fast6x1-return-paper"
 
 
 def test_disagreement_measures_by_hand(tmp_path):

@@ -201,7 +201,26 @@ def load_claims(path: str | Path) -> list[Claim]:
                 studies=tuple(studies),
             )
         )
+    _check_planned(claims, document.get("planned_after"), path)
     return claims
+
+
+def _check_planned(claims: Sequence[Claim], planned_after: Any, path: str | Path) -> None:
+    """
+    ``ValueError`` naming a claim after ``planned_after`` (a claim's id: the file's ``planned_after``) that declares no
+    planned runs: from that claim on, each is decided once its arms have the runs it plans, never as runs arrive.
+    """
+    if planned_after is None:
+        return
+    ids = [claim.id for claim in claims]
+    if planned_after not in ids:
+        raise ValueError(f"{path}: planned_after {planned_after!r} is not the id of one of its claims")
+    for claim in claims[ids.index(planned_after) + 1 :]:
+        if not claim.planned:
+            raise ValueError(
+                f"{path}: claim {claim.id!r} plans no runs: every claim declared after {planned_after!r} says how "
+                "many runs an arm it waits for (planned: N), so that it is decided once, not as runs arrive"
+            )
 
 
 @dataclass(frozen=True)
