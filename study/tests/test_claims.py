@@ -430,6 +430,10 @@ def test_what_was_seen_before_a_claim_comes_from_git(tmp_path):
     assert row.startswith(f"| later | {declared.commit} (")
     assert row.endswith("| 2 of 6 | 2 of 6 | 4 against 4: -2.5 [-3.06, -1.94], p 0.0286 |")
     assert missing == "| unsaved | not committed, or no git history | | | |"
+    # A baseline whose runs were all in before the claim: nothing to decide on the runs added after, SERA's counted
+    before_only = [run for run in runs if run.variant == "serasac" or run.seed < 2]
+    _, _, row, _ = seen_before_lines(results, before_only, ledger)
+    assert row.endswith("| 2 of 6 | 2 of 6 | 4 and 0 runs: waiting for runs (no runs of sera_nolr) |")
     assert declaration(tmp_path.parent, "later") is None  # no repository there
 
 

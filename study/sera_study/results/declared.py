@@ -101,7 +101,10 @@ def _alone(claim: Claim, runs: Sequence[RunResult], **changes: Any) -> str:
     """
     result = evaluate([dataclasses.replace(claim, primary=False, **changes)], group_runs(list(runs)))[0]
     if result.difference is None:
-        return f"{len(result.arm_values)} and {len(result.baseline_values)} runs: {result.verdict}"
+        # Counted here: where an arm has no runs, the result holds the other's none either
+        counts = [sum(run.variant == arm and claim.reads(run) for run in runs) for arm in (claim.arm, claim.baseline)]
+        note = f" ({result.note})" if result.note else ""
+        return f"{counts[0]} and {counts[1]} runs: {result.verdict}{note}"
     interval = f" [{_number(result.low)}, {_number(result.high)}]" if result.low is not None else ""
     p = f", p {result.p_value:.3g}" if result.p_value is not None else f" ({result.verdict})"
     return f"{len(result.arm_values)} against {len(result.baseline_values)}: {_number(result.difference)}{interval}{p}"
