@@ -22,6 +22,14 @@ def p_text(value: float | None) -> str:
     return "" if value is None else f"{value:.4f}" if value >= 0.0001 else "< 0.0001"
 
 
+def interval_text(result: ClaimResult) -> str:
+    """A claim's difference with its Welch interval, as the claims tables print it (the difference alone without one)."""
+    difference = format_number(result.difference)
+    if result.low is None:
+        return difference
+    return f"{difference} [{format_number(result.low)}, {format_number(result.high)}]"
+
+
 def claims_table(results: Sequence[ClaimResult], primary: bool) -> list[str]:
     """
     A Markdown table of ``results``: each claim's difference with its interval, Welch's and the studentized
@@ -37,11 +45,7 @@ def claims_table(results: Sequence[ClaimResult], primary: bool) -> list[str]:
     ]
     for result in results:
         claim, measure = result.claim, MEASURES[result.claim.measure]
-        interval = (
-            f"{format_number(result.difference)} [{format_number(result.low)}, {format_number(result.high)}]"
-            if result.low is not None
-            else format_number(result.difference)
-        )
+        interval = interval_text(result)
         shown = not result.withheld
         arm_mean = format_number(float(result.arm_values.mean())) if shown and len(result.arm_values) else ""
         base_mean = format_number(float(result.baseline_values.mean())) if shown and len(result.baseline_values) else ""

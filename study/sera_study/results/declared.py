@@ -13,6 +13,7 @@ from typing import Any
 
 from sera_study.records import RunResult
 from sera_study.results.claims import Claim, ClaimResult, Seen, evaluate
+from sera_study.results.claims_text import interval_text
 from sera_study.results.report import group_runs
 
 
@@ -105,9 +106,8 @@ def _alone(claim: Claim, runs: Sequence[RunResult], **changes: Any) -> str:
         counts = [sum(run.variant == arm and claim.reads(run) for run in runs) for arm in (claim.arm, claim.baseline)]
         note = f" ({result.note})" if result.note else ""
         return f"{counts[0]} and {counts[1]} runs: {result.verdict}{note}"
-    interval = f" [{_number(result.low)}, {_number(result.high)}]" if result.low is not None else ""
     p = f", p {result.p_value:.3g}" if result.p_value is not None else f" ({result.verdict})"
-    return f"{len(result.arm_values)} against {len(result.baseline_values)}: {_number(result.difference)}{interval}{p}"
+    return f"{len(result.arm_values)} against {len(result.baseline_values)}: {interval_text(result)}{p}"
 
 
 def unseen_lines(results: Sequence[ClaimResult], runs: Sequence[RunResult], seen: Sequence[Seen]) -> list[str]:
@@ -128,7 +128,3 @@ def unseen_lines(results: Sequence[ClaimResult], runs: Sequence[RunResult], seen
             seeds = " and ".join(str(seed) for seed in entry.seeds)
             lines.append(f"- {result.claim.id} without {entry.arm}'s seeds {seeds} (seen as {entry.seen_as}'s): {without}")
     return lines
-
-
-def _number(value: Any) -> str:
-    return f"{value:.3g}" if abs(value) < 1000 else f"{value:.0f}"

@@ -105,8 +105,8 @@ def machines_line(runs: Sequence[RunResult]) -> str:
     """
     by_machine: dict[str, int] = {}
     for run in runs:
-        machines = dict.fromkeys(str(a.get("gpu") or a.get("cpu")) for a in run.attempts if a.get("gpu") or a.get("cpu"))
-        label = " and ".join(machines) if machines else ""
+        machines = dict.fromkeys(str(name) for a in run.attempts if (name := a.get("gpu") or a.get("cpu")))
+        label = " and ".join(machines)
         by_machine[label] = by_machine.get(label, 0) + 1
     unrecorded = by_machine.pop("", 0)
     named = "; ".join(f"{machine} ({n})" for machine, n in sorted(by_machine.items(), key=lambda item: -item[1]))

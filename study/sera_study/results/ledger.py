@@ -236,24 +236,29 @@ def _commit(run: RunResult) -> str:
     return commit if args.get("git_clean", True) else f"{commit}, modified tree"
 
 
+def _block_span(text: str, markers: tuple[str, str]) -> tuple[int, int] | None:
+    """Where ``text``'s block between ``markers`` starts and ends (its end marker included), or None without them."""
+    begin, end = markers
+    start, stop = text.find(begin), text.find(end)
+    return None if start < 0 or stop < start else (start, stop + len(end))
+
+
 def replace_block(text: str, block: str, name: str, markers: tuple[str, str] = (BEGIN, END)) -> str:
     """``text`` (the page ``name``) with its generated block between ``markers`` (the results' by default) replaced by
     ``block``, which holds the markers; ``ValueError`` without them."""
-    begin, end = markers
-    start, stop = text.find(begin), text.find(end)
-    if start < 0 or stop < start:
-        raise ValueError(f"{name} has no generated block: add a line {begin} and, below it, a line {end}")
-    return text[:start] + block + text[stop + len(end) :]
+    span = _block_span(text, markers)
+    if span is None:
+        raise ValueError(f"{name} has no generated block: add a line {markers[0]} and, below it, a line {markers[1]}")
+    return text[: span[0]] + block + text[span[1] :]
 
 
 def current_block(text: str, markers: tuple[str, str] = (BEGIN, END)) -> str:
     """The generated block of ``text`` (the results page) between ``markers`` (the results' by default), as it
     stands."""
-    begin, end = markers
-    start, stop = text.find(begin), text.find(end)
-    if start < 0 or stop < start:
-        raise ValueError(f"the text has no generated block between {begin} and {end}")
-    return text[start : stop + len(end)]
+    span = _block_span(text, markers)
+    if span is None:
+        raise ValueError(f"the text has no generated block between {markers[0]} and {markers[1]}")
+    return text[span[0] : span[1]]
 
 
 def readings_block(ledger: str | Path | LedgerResults = LEDGER_DIR) -> str | None:
@@ -296,9 +301,8 @@ def write_results(ledger: str | Path = LEDGER_DIR, docs: str | Path = DOCS_DIR, 
     )
     page = docs / RESULTS_PAGE
     block, readings = results_block(results, reps), readings_block(results)
-    if not page.exists():
-        page.write_text(f"# Results\n\n{block}\n" + (f"\n{READINGS_BEGIN}\n{READINGS_END}\n" if readings else ""))
-    text = replace_block(page.read_text(), block, str(page))
+    fresh = f"# Results\n\n{BEGIN}\n{END}\n" + (f"\n{READINGS_BEGIN}\n{READINGS_END}\n" if readings else "")
+    text = replace_block(page.read_text() if page.exists() else fresh, block, str(page))
     if readings is not None:
         text = replace_block(text, readings, str(page), (READINGS_BEGIN, READINGS_END))
     page.write_text(text)

@@ -23,7 +23,7 @@ import yaml
 from sera_study.records import FINAL_EVALUATIONS
 from sera_study.results import stats
 from sera_study.results.claims import ALPHA, ClaimResult
-from sera_study.results.claims_text import format_number, p_text, rests_on_bh_alone
+from sera_study.results.claims_text import format_number, interval_text, p_text, rests_on_bh_alone
 from sera_study.results.groups import RunGroup
 from sera_study.results.measures import signed_bias
 from sera_study.results.report.paper import paper_value
@@ -34,6 +34,10 @@ READINGS_FILE = "readings.md"
 BEGIN, END = "<!-- readings:begin -->", "<!-- readings:end -->"
 #: A placeholder: ``{{kind: part | part | ...}}``, its parts on one line or across a line break
 PLACEHOLDER = re.compile(r"\{\{\s*(\w+):\s*([^{}]*?)\s*\}\}")
+#: The width the results page's source keeps to
+WIDTH = 120
+#: A space that the wrapping does not break at
+_KEEP = "\x00"
 
 
 def _mean_sd(values: np.ndarray) -> str:
@@ -73,7 +77,7 @@ CLAIM_FIELDS: dict[str, Callable[[ClaimResult], str]] = {
     "arm mean sd": lambda r: _mean_sd(r.arm_values),
     "baseline mean sd": lambda r: _mean_sd(r.baseline_values),
     "difference": lambda r: format_number(_tested(r).difference),
-    "interval": lambda r: f"{format_number(_tested(r).difference)} [{format_number(r.low)}, {format_number(r.high)}]",
+    "interval": lambda r: interval_text(_tested(r)),
     "high % of baseline": lambda r: f"{100 * (_tested(r).high or 0.0) / float(r.baseline_values.mean()):.1f}%",
     "welch p": lambda r: p_text(r.welch_p),
     "permutation p": lambda r: p_text(r.permutation_p),
@@ -134,6 +138,11 @@ def _signed(group: RunGroup) -> list[float]:
     return values
 
 
+def _overestimate(signed: Sequence[float]) -> str:
+    """``k of n``: how many of the runs' signed biases are above 0."""
+    return f"{sum(value > 0 for value in signed)} of {len(signed)}"
+
+
 def _wall_times(group: RunGroup) -> str:
     times = [run.wall_time_s for run in group.runs]
     return f"{min(times):,.0f}-{max(times):,.0f} s" if len(times) > 1 else f"{times[0]:,.0f} s"
@@ -157,8 +166,8 @@ RUN_FIELDS: dict[str, Callable[[RunGroup], str]] = {
     "seeds": lambda g: _seeds([run.seed for run in _by_seed(g)]),
     "resumed": lambda g: str(sum(bool(run.resumes) for run in g.runs)),
     "resumed seeds": lambda g: _seeds([run.seed for run in _by_seed(g) if run.resumes]),
-    "wall times": lambda g: _wall_times(g),
-    "overestimate": lambda g: f"{sum(value > 0 for value in _signed(g))} of {len(_signed(g))}",
+    "wall times": _wall_times,
+    "overestimate": lambda g: _overestimate(_signed(g)),
     "signed bias": lambda g: _mean_sd(np.array(_signed(g))),
     "auc mean": lambda g: format_number(float(g.aucs.mean())),
     "paper ratio": lambda g: _paper_ratio(g, g.finals),
@@ -179,10 +188,9 @@ def _group(spec: str, env_id: str, budget: str, groups: Sequence[RunGroup]) -> R
     return found[0]
 
 
-def _value(kind: str, parts: list[str], decided: Sequence[ClaimResult], groups: Sequence[RunGroup]) -> str:
-    """What one placeholder gives (see the module's docstring)."""
+def _value(kind: str, parts: list[str], claims: dict[str, ClaimResult], groups: Sequence[RunGroup]) -> str:
+    """What one placeholder gives (see the module's docstring); ``claims`` are the decided claims by id."""
     if kind == "claim" and len(parts) == 2:
-        claims = {result.claim.id: result for result in decided}
         if parts[0] not in claims:
             raise ValueError(f"no claim '{parts[0]}' in the ledger's claims.yml")
         number = CLAIM_NUMBER_FIELDS.fullmatch(parts[1])
@@ -217,23 +225,17 @@ def fill_readings(template: str, decided: Sequence[ClaimResult], groups: Sequenc
     :raises ValueError: naming the first placeholder the ledger cannot fill, and why
     """
 
+    claims = {result.claim.id: result for result in decided}
+
     def replace(match: re.Match[str]) -> str:
         parts = [" ".join(part.split()) for part in match.group(2).split("|")]
         try:
             # A number's words stay on one line when the text is wrapped again
-            return _value(match.group(1), parts, decided, groups).replace(" ", _KEEP)
+            return _value(match.group(1), parts, claims, groups).replace(" ", _KEEP)
         except ValueError as error:
             raise ValueError(f"{READINGS_FILE}: {' '.join(match.group(0).split())}: {error}") from None
 
     return _rewrapped(PLACEHOLDER.sub(replace, template)).replace(_KEEP, " ")
-
-
-#: A space that the wrapping does not break at
-_KEEP = "\x00"
-
-
-#: The width the results page's source keeps to
-WIDTH = 120
 
 
 def _rewrapped(text: str) -> str:
